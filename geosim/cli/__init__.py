@@ -1,0 +1,1 @@
+"""Command-line interface: modules here only parse arguments and call the library."""

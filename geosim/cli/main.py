@@ -1,0 +1,67 @@
+"""The ``geosim`` command group. Subcommands live in sibling modules."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from collections.abc import Callable
+from typing import Any
+
+import click
+
+from geosim import __version__
+from geosim.errors import GeosimError
+
+# (module, attribute) of each subcommand; every module only parses and calls.
+SUBCOMMANDS: list[tuple[str, str]] = [
+    ("geosim.cli.run", "run"),
+    ("geosim.cli.run", "demo"),
+    ("geosim.cli.samples", "samples"),
+    ("geosim.cli.prepare", "grid"),
+    ("geosim.cli.prepare", "align"),
+    ("geosim.cli.prepare", "tile"),
+    ("geosim.cli.prepare", "prepare"),
+    ("geosim.cli.labels", "labels"),
+    ("geosim.cli.labels", "cattle_per_paddock"),
+    ("geosim.cli.labels", "movement"),
+    ("geosim.cli.degrade", "degrade"),
+    ("geosim.cli.degrade", "calibrate"),
+    ("geosim.cli.augment", "augment"),
+    ("geosim.cli.diagnose", "diagnose"),
+]
+
+
+class GeosimGroup(click.Group):
+    """Turns :class:`GeosimError` into one line on stderr and exit code 2."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except GeosimError as exc:
+            if ctx.obj and ctx.obj.get("debug"):
+                raise
+            click.echo(f"geosim: error: {exc}", err=True)
+            sys.exit(2)
+
+
+@click.group(cls=GeosimGroup)
+@click.version_option(__version__, prog_name="geosim")
+@click.option("--debug", is_flag=True, help="Show full tracebacks instead of one-line errors.")
+@click.pass_context
+def cli(ctx: click.Context, debug: bool) -> None:
+    """geosim: UAV surveys of cattle paddocks to aligned, labelled patch pairs and
+    calibrated 0.5 m satellite simulations, in map coordinates."""
+    ctx.ensure_object(dict)
+    ctx.obj["debug"] = debug
+
+
+def _register(group: click.Group, entries: list[tuple[str, str]]) -> None:
+    for module_name, attr in entries:
+        if importlib.util.find_spec(module_name) is None:
+            continue  # subcommand module not written yet
+        command: Callable[..., Any] = getattr(importlib.import_module(module_name), attr)
+        group.add_command(command)  # type: ignore[arg-type]
+
+
+_register(cli, SUBCOMMANDS)

@@ -1,0 +1,1 @@
+"""The I/O layer: the only place that touches files. Kernels elsewhere are pure."""

@@ -1,0 +1,191 @@
+"""Reading and writing GeoTIFFs with the conventions of DESIGN.md.
+
+Outputs are tiled, compressed GeoTIFFs with CRS, transform, nodata and/or an
+internal mask, band descriptions and provenance tags, written atomically.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.crs import CRS
+from rasterio.errors import RasterioIOError
+from rasterio.windows import Window
+
+from geosim.errors import InputFileError, RasterError
+from geosim.io.atomic import atomic_path
+
+BLOCK_PX = 256
+
+
+def open_raster(path: str | os.PathLike[str], *, what: str = "raster",
+                require_crs: bool = True) -> rasterio.DatasetReader:
+    """Open a raster for reading, with errors that name the file and the fix.
+
+    Parameters
+    ----------
+    path
+        Raster file path.
+    what
+        What the raster is for, used in messages (``"flight PA1"``, ``"satellite scene"``).
+    require_crs
+        Refuse a raster without a CRS or without a georeferencing transform.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise InputFileError(f"{what}: {p} does not exist; check the path")
+    try:
+        ds = rasterio.open(p)
+    except RasterioIOError as exc:
+        raise RasterError(f"{what}: {p} cannot be read as a raster ({exc}); "
+                          "give a GeoTIFF or another GDAL-readable raster") from exc
+    if require_crs:
+        if ds.crs is None:
+            ds.close()
+            raise RasterError(f"{what}: {p} has no CRS; assign one (e.g. gdal_edit.py -a_srs "
+                              "EPSG:xxxx) before using it")
+        if ds.transform == Affine.identity():
+            ds.close()
+            raise RasterError(f"{what}: {p} has no georeferencing transform; georeference it "
+                              "before using it")
+    return ds
+
+
+def alpha_band_index(ds: rasterio.DatasetReader) -> int | None:
+    """1-based index of the alpha band, or ``None``."""
+    from rasterio.enums import ColorInterp
+
+    for i, ci in enumerate(ds.colorinterp, start=1):
+        if ci == ColorInterp.alpha:
+            return i
+    if ds.count == 4 and ds.dtypes[0] == "uint8":
+        return 4  # RGBA written without colour interpretation
+    return None
+
+
+def image_band_indexes(ds: rasterio.DatasetReader) -> list[int]:
+    """1-based indexes of the image bands (all bands except alpha)."""
+    alpha = alpha_band_index(ds)
+    return [i for i in range(1, ds.count + 1) if i != alpha]
+
+
+def read_valid_mask(ds: rasterio.DatasetReader, window: Window | None = None) -> np.ndarray:
+    """Valid-data mask (True = valid) from alpha, nodata or the internal mask.
+
+    GDAL's dataset mask combines all three; a pixel is valid when it is non-zero.
+    """
+    alpha = alpha_band_index(ds)
+    if alpha is not None:
+        return ds.read(alpha, window=window) > 0
+    return ds.dataset_mask(window=window) > 0
+
+
+def geotiff_profile(*, width: int, height: int, count: int, dtype: str | np.dtype,
+                    crs: CRS | str, transform: Affine, nodata: float | None = None,
+                    ) -> dict[str, Any]:
+    """Creation options for a tiled, deflate-compressed GeoTIFF."""
+    dtype = np.dtype(dtype).name
+    tiled = width >= BLOCK_PX and height >= BLOCK_PX
+    profile: dict[str, Any] = {
+        "driver": "GTiff", "width": int(width), "height": int(height), "count": int(count),
+        "dtype": dtype, "crs": CRS.from_user_input(crs), "transform": transform,
+        "compress": "deflate", "predictor": 3 if dtype.startswith("float") else 2,
+        "tiled": tiled, "interleave": "pixel", "BIGTIFF": "IF_SAFER",
+    }
+    if tiled:
+        profile.update(blockxsize=BLOCK_PX, blockysize=BLOCK_PX)
+    if nodata is not None:
+        profile["nodata"] = nodata
+    return profile
+
+
+def provenance_tags(step: str, params: Mapping[str, Any] | None = None,
+                    sources: Sequence[str | os.PathLike[str]] = ()) -> dict[str, str]:
+    """GeoTIFF metadata tags that say what made a file."""
+    from geosim import __version__
+
+    return {
+        "GEOSIM_VERSION": __version__,
+        "GEOSIM_STEP": step,
+        "GEOSIM_PARAMS": json.dumps(dict(params or {}), sort_keys=True, default=str),
+        "GEOSIM_SOURCES": json.dumps([str(s) for s in sources]),
+    }
+
+
+@contextlib.contextmanager
+def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, count: int,
+                   dtype: str | np.dtype, crs: CRS | str, transform: Affine,
+                   nodata: float | None = None, band_descriptions: Sequence[str] | None = None,
+                   tags: Mapping[str, str] | None = None, internal_mask: bool = False,
+                   ) -> Iterator[rasterio.io.DatasetWriter]:
+    """Open a GeoTIFF for windowed writing under a temporary name; rename on success.
+
+    Use this when the raster is written window by window. ``internal_mask=True``
+    adds a GDAL internal mask band (write it with ``dst.write_mask``).
+    """
+    profile = geotiff_profile(width=width, height=height, count=count, dtype=dtype, crs=crs,
+                              transform=transform, nodata=nodata)
+    with atomic_path(path) as tmp:
+        env = rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True) if internal_mask else contextlib.nullcontext()
+        with env, rasterio.open(tmp, "w", **profile) as dst:
+            if band_descriptions is not None:
+                for i, desc in enumerate(band_descriptions, start=1):
+                    dst.set_band_description(i, desc)
+            if tags:
+                dst.update_tags(**tags)
+            yield dst
+
+
+def write_geotiff(path: str | os.PathLike[str], array: np.ndarray, *, transform: Affine,
+                  crs: CRS | str, nodata: float | None = None, mask: np.ndarray | None = None,
+                  band_descriptions: Sequence[str] | None = None,
+                  tags: Mapping[str, str] | None = None) -> Path:
+    """Write a whole array (bands, rows, cols) or (rows, cols) as a GeoTIFF, atomically.
+
+    Parameters
+    ----------
+    array
+        Pixel values; a 2-D array is written as one band.
+    transform, crs
+        Georeference of pixel (0, 0)'s outer corner and the CRS it is in.
+    nodata
+        Nodata value written into the file; pixels where ``mask`` is False are set to it.
+    mask
+        Valid-data mask (True = valid), written as an internal mask band when given.
+    """
+    arr = array[np.newaxis] if array.ndim == 2 else array
+    if mask is not None and nodata is not None:
+        arr = np.where(mask[np.newaxis], arr, np.asarray(nodata, dtype=arr.dtype))
+    with create_geotiff(path, width=arr.shape[2], height=arr.shape[1], count=arr.shape[0],
+                        dtype=arr.dtype, crs=crs, transform=transform, nodata=nodata,
+                        band_descriptions=band_descriptions, tags=tags,
+                        internal_mask=mask is not None) as dst:
+        dst.write(arr)
+        if mask is not None:
+            dst.write_mask(mask.astype(np.uint8) * 255)
+    return Path(path)
+
+
+def sha256_file(path: str | os.PathLike[str], *, chunk_bytes: int = 1 << 20) -> str:
+    """SHA-256 hex digest of a file, read in chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk_bytes):
+            h.update(block)
+    return h.hexdigest()
+
+
+def iter_windows(width: int, height: int, *, block_px: int = 2048) -> Iterator[Window]:
+    """Row-major windows of at most ``block_px`` × ``block_px`` covering a raster."""
+    for row in range(0, height, block_px):
+        for col in range(0, width, block_px):
+            yield Window(col, row, min(block_px, width - col), min(block_px, height - row))
