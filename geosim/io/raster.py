@@ -135,7 +135,8 @@ def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, cou
     profile = geotiff_profile(width=width, height=height, count=count, dtype=dtype, crs=crs,
                               transform=transform, nodata=nodata)
     with atomic_path(path) as tmp:
-        env = rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True) if internal_mask else contextlib.nullcontext()
+        env = (rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True) if internal_mask
+               else contextlib.nullcontext())
         with env, rasterio.open(tmp, "w", **profile) as dst:
             if band_descriptions is not None:
                 for i, desc in enumerate(band_descriptions, start=1):
