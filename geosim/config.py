@@ -199,7 +199,7 @@ _PADDOCK_KEYS = {"path"}
 def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str, src: Path) -> None:
     unknown = sorted(set(table) - allowed)
     if unknown:
-        raise ConfigError(f"{src}: unknown key {where}{unknown[0]!r}; allowed keys here: "
+        raise ConfigError(f"{src}: unknown key '{where}{unknown[0]}'; allowed keys here: "
                           f"{', '.join(sorted(allowed))}")
 
 

@@ -10,6 +10,7 @@ import contextlib
 import hashlib
 import json
 import os
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ import numpy as np
 import rasterio
 from affine import Affine
 from rasterio.crs import CRS
-from rasterio.errors import RasterioIOError
+from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
 from geosim.errors import InputFileError, RasterError
@@ -44,7 +45,10 @@ def open_raster(path: str | os.PathLike[str], *, what: str = "raster",
     if not p.exists():
         raise InputFileError(f"{what}: {p} does not exist; check the path")
     try:
-        ds = rasterio.open(p)
+        with warnings.catch_warnings():
+            # a missing georeference is reported below as a clear error instead
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            ds = rasterio.open(p)
     except RasterioIOError as exc:
         raise RasterError(f"{what}: {p} cannot be read as a raster ({exc}); "
                           "give a GeoTIFF or another GDAL-readable raster") from exc

@@ -1,0 +1,5 @@
+"""``python -m geosim`` runs the CLI."""
+
+from geosim.cli.main import cli
+
+cli(prog_name="geosim")

@@ -1,0 +1,39 @@
+"""Small builders shared by tests (no fixtures with hidden state)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from affine import Affine
+
+
+def textured_rgb(rows: int, cols: int, *, seed: int = 0) -> np.ndarray:
+    """A uint8 (3, rows, cols) image with multi-scale texture (filtered noise)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    acc = np.zeros((rows, cols), np.float32)
+    for sigma, weight in ((1.0, 0.3), (4.0, 0.5), (16.0, 1.0)):
+        noise = rng.standard_normal((rows, cols)).astype(np.float32)
+        acc += weight * cv2.GaussianBlur(noise, (0, 0), sigma) * sigma
+    acc = (acc - acc.mean()) / (acc.std() + 1e-9)
+    grey = np.clip(120 + 40 * acc, 1, 254)
+    return np.stack([grey * 0.9, grey, grey * 0.7]).astype(np.uint8)
+
+
+def write_raster(path: Path, array: np.ndarray, *, crs: str | None = "EPSG:28356",
+                 transform: Affine | None = None, nodata: float | None = None) -> Path:
+    """Write a plain GeoTIFF with rasterio (independent of geosim's writer)."""
+    arr = array[np.newaxis] if array.ndim == 2 else array
+    profile = {"driver": "GTiff", "width": arr.shape[2], "height": arr.shape[1],
+               "count": arr.shape[0], "dtype": arr.dtype.name}
+    if crs is not None:
+        profile["crs"] = crs
+        profile["transform"] = transform or Affine(0.05, 0, 250000.0, 0, -0.05, 6190000.0)
+    if nodata is not None:
+        profile["nodata"] = nodata
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(arr)
+    return path

@@ -1,0 +1,60 @@
+"""The runner records steps, timings, inputs with checksums, and failures, in run.json."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+from geosim.config import site_from_images
+from geosim.errors import ConfigError
+from geosim.pipeline import Step, run_pipeline, select_steps
+from tests.helpers import textured_rgb, write_raster
+
+
+@pytest.fixture
+def fake_steps(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    calls: list[str] = []
+    mod = types.ModuleType("fake_steps")
+
+    def ok(site, out):  # noqa: ANN001, ANN202
+        calls.append("ok")
+        (out / "ok.txt").write_text("x")
+        return {"written": 1}
+
+    def boom(site, out):  # noqa: ANN001, ANN202
+        raise RuntimeError("step exploded")
+
+    mod.ok, mod.boom = ok, boom
+    monkeypatch.setitem(sys.modules, "fake_steps", mod)
+    monkeypatch.setattr("geosim.pipeline.STEPS", (
+        Step("one", "fake_steps", "ok"), Step("sat", "fake_steps", "ok", needs_satellite=True),
+        Step("two", "fake_steps", "boom")))
+    monkeypatch.setattr("geosim.pipeline.STEP_NAMES", ("one", "sat", "two"))
+    return calls
+
+
+def test_run_json_records_inputs_steps_and_failure(tmp_path: Path, fake_steps: list[str]) -> None:
+    img = write_raster(tmp_path / "a.tif", textured_rgb(32, 32))
+    site = site_from_images([img], None)
+    with pytest.raises(RuntimeError, match="exploded"):
+        run_pipeline(site, tmp_path / "out", echo=lambda s: None)
+    record = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert record["status"] == "failed"
+    assert record["steps"]["one"]["status"] == "ok" and record["steps"]["one"]["seconds"] >= 0
+    assert record["steps"]["sat"]["status"] == "skipped"
+    assert record["steps"]["two"] == {**record["steps"]["two"], "status": "failed",
+                                      "error": "step exploded"}
+    expected = hashlib.sha256(img.read_bytes()).hexdigest()
+    assert record["inputs"]["flights.a.image"]["sha256"] == expected
+    assert record["site"]["parameters"]["phi"] == 10
+
+
+def test_only_selects_steps_in_order(fake_steps: list[str]) -> None:
+    assert [s.name for s in select_steps(["two", "one"])] == ["one", "two"]
+    with pytest.raises(ConfigError, match="unknown step"):
+        select_steps(["three"])
