@@ -1,0 +1,487 @@
+"""The paper's degradation, I_sat = (I_uav ⊛ PSF(Q)) ↓φ, as pure array kernels.
+
+Model
+-----
+Each band is convolved with the circular-aperture PSF of the given Q (cutoff
+1 / (Q φ) cycles per UAV pixel), then downsampled by the whole factor φ with
+OpenCV's bicubic ``cv2.resize(..., INTER_CUBIC)``, as in the paper.
+
+Boundary. The convolution uses the half-sample symmetric extension of the image
+(``…c b a | a b c … | … c b a``, OpenCV's ``BORDER_REFLECT``), and the full,
+untruncated PSF: it is computed exactly in the DCT-II domain, which is the FFT of
+the symmetric extension. Multiplying the DCT-II coefficient (k, l) by the optics
+OTF at (k / 2N, l / 2M) cycles per pixel
+(:func:`geosim.physics.otf.optics_otf`) is the convolution with the Airy PSF
+(its periodisation over the 2N × 2M symmetric extension), so nothing is wrapped
+across edges, no kernel is truncated and the mean is conserved exactly.
+
+Two methods compute the same numbers:
+
+``"reference"``
+    Literally the paper: the full-resolution blurred image (inverse DCT), then
+    ``cv2.resize`` with ``INTER_CUBIC``.
+``"fast"``
+    Since the OTF is exactly zero above 1 / (Q φ) cycles per pixel, only the
+    lowest ⌈2N/(Qφ)⌉ DCT coefficients per axis are non-zero, and since
+    ``INTER_CUBIC`` downsampling by a whole factor reads only a 4 × 4
+    neighbourhood of the blurred image per output pixel, the output is
+    ``A_rows @ (C · H) @ A_cols.T`` where ``C`` are the kept coefficients, ``H``
+    the OTF and ``A`` the inverse-DCT basis at the 4 source rows (columns) of
+    each output pixel, weighted by OpenCV's cubic coefficients. The forward DCT
+    along rows is done in row blocks (float32), keeping only the needed
+    coefficients, so memory is O(N · K) instead of O(N · M). Agrees with the
+    reference to ~1e-4 DN before rounding.
+
+No-data. Invalid UAV pixels are first filled with a smooth continuation of the
+valid ones (:func:`fill_invalid`, a pull–push pyramid), then the filled image is
+degraded as a whole; a 0.5 m pixel is valid only when all φ × φ UAV pixels under
+it are. Filling keeps the PSF's full weight on valid data, so neither a fill
+colour bleeds in (as with a constant fill) nor is local contrast inflated (as
+with normalised convolution, D(I·V)/D(V), whose renormalisation by the slowly
+decaying Airy wings raised the calibrated Q of a 30 m flight inside a larger
+satellite scene by +1 % in development; with the fill and the calibration's guard
+band it is within ±0.05 %, ``tests/test_calibrate.py``). Valid pixels within about
+one PSF radius of no-data see a smooth fill instead of the true ground beyond,
+which the calibration excludes with a guard band.
+
+Output size. ``rows // φ`` × ``cols // φ``: trailing rows/columns that do not
+fill a whole satellite pixel are dropped (the output keeps the input's origin,
+its pixels are φ times larger).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+import scipy.fft
+
+from geosim.physics.otf import optics_otf
+
+Method = Literal["fast", "reference"]
+METHODS: tuple[str, ...] = ("fast", "reference")
+
+#: OpenCV's bicubic coefficient (Keys' a), used by cv2.resize INTER_CUBIC.
+CV2_CUBIC_A = -0.75
+
+_ROW_BLOCK = 512
+
+
+# ----------------------------------------------------------------------- validation
+
+def _check_q(q: float) -> float:
+    try:
+        qf = float(q)
+    except (TypeError, ValueError):
+        raise ValueError(f"q must be a positive number, got {q!r}") from None
+    if not (np.isfinite(qf) and qf > 0):
+        raise ValueError(f"q must be a positive number, got {q!r}")
+    return qf
+
+
+def _check_phi(phi: int | float) -> int:
+    if isinstance(phi, bool) or not isinstance(phi, (int, float, np.integer, np.floating)):
+        raise ValueError(f"phi must be a whole number ≥ 1, got {phi!r}")
+    if not np.isfinite(phi) or phi < 1 or int(phi) != phi:
+        raise ValueError(f"phi must be a whole number ≥ 1 (satellite GSD / UAV GSD), "
+                         f"got {phi!r}")
+    return int(phi)
+
+
+def _check_obscuration(obscuration: float) -> float:
+    if not 0.0 <= float(obscuration) < 1.0:
+        raise ValueError(f"obscuration must be a diameter ratio in [0, 1), got {obscuration!r}")
+    return float(obscuration)
+
+
+def _as_stack(image: np.ndarray) -> np.ndarray:
+    arr = np.asarray(image)
+    if arr.ndim == 2:
+        arr = arr[np.newaxis]
+    if arr.ndim != 3:
+        raise ValueError(f"image must be (rows, cols) or bands-first (bands, rows, cols), "
+                         f"got shape {np.shape(image)}")
+    if arr.shape[0] < 1:
+        raise ValueError("image has no bands")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise ValueError(f"image must hold integer or float values, got dtype {arr.dtype}")
+    return arr
+
+
+def _check_valid(valid: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+    if valid is None:
+        return None
+    v = np.asarray(valid)
+    if v.shape != shape:
+        raise ValueError(f"valid mask shape {v.shape} does not match the image's "
+                         f"(rows, cols) = {shape}")
+    v = v.astype(bool, copy=False)
+    return None if v.all() else v
+
+
+def _output_shape(shape: tuple[int, int], phi: int) -> tuple[int, int]:
+    rows, cols = shape
+    if rows < phi or cols < phi:
+        raise ValueError(f"image of {rows} × {cols} px is smaller than one satellite pixel "
+                         f"(phi = {phi} px); nothing to degrade")
+    return rows // phi, cols // phi
+
+
+# ----------------------------------------------------------------------- small helpers
+
+def block_all(valid: np.ndarray, phi: int) -> np.ndarray:
+    """A coarse pixel is True only when all ``phi`` × ``phi`` fine pixels under it are.
+
+    Trailing rows/columns that do not fill a coarse pixel are ignored.
+    """
+    phi = _check_phi(phi)
+    v = np.asarray(valid, dtype=bool)
+    rows, cols = v.shape[0] // phi, v.shape[1] // phi
+    return v[:rows * phi, :cols * phi].reshape(rows, phi, cols, phi).all(axis=(1, 3))
+
+
+def to_dtype(arr: np.ndarray, dtype: np.dtype | type | str) -> np.ndarray:
+    """Round half to even and clip to the range of an integer ``dtype``; cast floats.
+
+    Parameters
+    ----------
+    arr
+        Values in digital numbers (DN).
+    dtype
+        Target dtype (e.g. the input tile's ``uint8``).
+    """
+    dt = np.dtype(dtype)
+    a = np.asarray(arr)
+    if np.issubdtype(dt, np.integer):
+        info = np.iinfo(dt)
+        return np.clip(np.rint(a), info.min, info.max).astype(dt)
+    if np.issubdtype(dt, np.floating):
+        return a.astype(dt)
+    raise ValueError(f"cannot convert to dtype {dt}")
+
+
+def cv2_cubic_taps(src_len: int, dst_len: int) -> tuple[np.ndarray, np.ndarray]:
+    """Source indices and weights OpenCV's ``INTER_CUBIC`` resize uses along one axis.
+
+    For output sample ``d`` the source coordinate is ``(d + 0.5) · s − 0.5`` with
+    ``s = src_len / dst_len``; the four taps around it get Keys' cubic
+    coefficients with a = −0.75, and indices beyond the image are clamped
+    (OpenCV replicates the border in ``resize``).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        ``(index, weight)``, both (dst_len, 4); ``index`` int64, ``weight`` float64.
+    """
+    scale = src_len / dst_len
+    pos = (np.arange(dst_len, dtype=np.float64) + 0.5) * scale - 0.5
+    pos = pos.astype(np.float32).astype(np.float64)  # OpenCV computes fx in single precision
+    base = np.floor(pos)
+    t = pos - base
+    a = CV2_CUBIC_A
+    w0 = ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a
+    w1 = ((a + 2) * t - (a + 3)) * t * t + 1
+    w2 = ((a + 2) * (1 - t) - (a + 3)) * (1 - t) * (1 - t) + 1
+    w3 = 1.0 - w0 - w1 - w2
+    index = base.astype(np.int64)[:, np.newaxis] + np.arange(-1, 3)[np.newaxis, :]
+    return np.clip(index, 0, src_len - 1), np.stack([w0, w1, w2, w3], axis=1)
+
+
+def _dct_basis(n: int, index: np.ndarray, n_coef: int) -> np.ndarray:
+    """Orthonormal inverse DCT-II basis: value of coefficient k at sample ``index``."""
+    k = np.arange(n_coef, dtype=np.float64)
+    basis = np.sqrt(2.0 / n) * np.cos(np.pi * np.outer(2.0 * index + 1.0, k) / (2.0 * n))
+    basis[:, 0] *= np.sqrt(0.5)
+    return basis
+
+
+def _resample_basis(n: int, n_out: int, n_coef: int, phi: int) -> np.ndarray:
+    """(n_out, n_coef) matrix: inverse DCT at the cubic taps of each output sample, weighted.
+
+    The blurred axis has ``n`` samples; the resize reads its first ``n_out · phi``
+    (as the reference crops before ``cv2.resize``), so the scale is exactly ``phi``.
+    """
+    index, weight = cv2_cubic_taps(n_out * phi, n_out)
+    out = np.zeros((n_out, n_coef))
+    for j in range(4):
+        out += weight[:, j:j + 1] * _dct_basis(n, index[:, j], n_coef)
+    return out
+
+
+def n_coefficients(n: int, *, q: float, phi: int) -> int:
+    """DCT-II coefficients (per axis of length ``n``) below the optics cutoff 1/(Qφ).
+
+    Coefficient k has frequency k / (2n) cycles per pixel; the OTF is exactly
+    zero from the cutoff on, so coefficients k ≥ 2n / (Qφ) are not needed.
+    """
+    return int(min(n, np.floor(2.0 * n / (q * phi)) + 1))
+
+
+def optics_otf_dct(shape: tuple[int, int], *, q: float, phi: int, obscuration: float = 0.0,
+                   n_coef: tuple[int, int] | None = None) -> np.ndarray:
+    """The optics OTF at the DCT-II frequencies (k / 2N, l / 2M) of an N × M image.
+
+    Parameters
+    ----------
+    shape
+        (rows, cols) = (N, M) of the full-resolution image, pixels.
+    n_coef
+        Only the first (K_rows, K_cols) coefficients (default: all).
+    """
+    rows, cols = shape
+    k_r, k_c = n_coef if n_coef is not None else shape
+    fy = (np.arange(k_r) / (2.0 * rows))[:, np.newaxis]
+    fx = (np.arange(k_c) / (2.0 * cols))[np.newaxis, :]
+    return optics_otf(fy, fx, q=q, phi=phi, obscuration=obscuration)
+
+
+# ----------------------------------------------------------------------- blur
+
+def blur(image: np.ndarray, *, q: float, phi: int = 10, obscuration: float = 0.0,
+         workers: int = -1) -> np.ndarray:
+    """Convolve each band with the full Airy PSF of ``q`` (symmetric boundary, exact).
+
+    Parameters
+    ----------
+    image
+        (rows, cols) or bands-first (bands, rows, cols), DN.
+    q
+        Q = λ f / (D p) on the satellite detector pitch (dimensionless).
+    phi
+        UAV pixels per satellite pixel (dimensionless whole number).
+    obscuration
+        Central obscuration, diameter ratio in [0, 1).
+
+    Returns
+    -------
+    numpy.ndarray
+        Float64 blurred image, same shape; its mean equals the input's exactly
+        (up to rounding error).
+    """
+    q = _check_q(q)
+    phi = _check_phi(phi)
+    obscuration = _check_obscuration(obscuration)
+    arr = np.asarray(image)
+    stack = _as_stack(arr)
+    transfer = optics_otf_dct(stack.shape[1:], q=q, phi=phi, obscuration=obscuration)
+    out = np.empty(stack.shape)
+    for i, band in enumerate(stack):
+        coef = scipy.fft.dctn(band.astype(np.float64), type=2, norm="ortho", workers=workers,
+                              overwrite_x=True)
+        coef *= transfer
+        out[i] = scipy.fft.idctn(coef, type=2, norm="ortho", workers=workers, overwrite_x=True)
+    return out[0] if arr.ndim == 2 else out
+
+
+def _resize_cubic(band: np.ndarray, out_shape: tuple[int, int], phi: int) -> np.ndarray:
+    rows, cols = out_shape
+    src = np.ascontiguousarray(band[:rows * phi, :cols * phi])
+    return cv2.resize(src, (cols, rows), interpolation=cv2.INTER_CUBIC)
+
+
+def _degrade_reference(stack: np.ndarray, *, q: float, phi: int,
+                       obscuration: float) -> np.ndarray:
+    out_shape = _output_shape(stack.shape[1:], phi)
+    out = np.empty((stack.shape[0], *out_shape))
+    for i, band in enumerate(stack):
+        out[i] = _resize_cubic(blur(band, q=q, phi=phi, obscuration=obscuration), out_shape, phi)
+    return out
+
+
+def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Fill invalid pixels with a smooth continuation of the valid ones (pull–push).
+
+    A mask-weighted image pyramid is built by 2 × 2 area averaging (pull); from
+    the coarsest level down, each pixel without valid data takes the bilinear
+    upsampling of the level above (push). Valid pixels keep their values.
+    (Gortler et al. 1996, "The Lumigraph", §3.3.)
+
+    Parameters
+    ----------
+    image
+        (rows, cols) or bands-first (bands, rows, cols), DN.
+    valid
+        (rows, cols) bool, True = valid; at least one pixel must be valid.
+
+    Returns
+    -------
+    numpy.ndarray
+        Float32 image, same shape, with invalid pixels filled.
+    """
+    arr = np.asarray(image)
+    stack = _as_stack(arr).astype(np.float32)
+    v = np.asarray(valid, dtype=bool)
+    if v.shape != stack.shape[1:]:
+        raise ValueError(f"valid mask shape {v.shape} does not match the image's "
+                         f"{stack.shape[1:]}")
+    if not v.any():
+        raise ValueError("no valid pixel to fill from")
+    weight = v.astype(np.float32)
+    out = np.empty_like(stack)
+    for i, band in enumerate(stack):
+        levels = [(band * weight, weight)]
+        while max(levels[-1][1].shape) > 1:
+            a, w = levels[-1]
+            size = (max(1, (a.shape[1] + 1) // 2), max(1, (a.shape[0] + 1) // 2))
+            levels.append((cv2.resize(a, size, interpolation=cv2.INTER_AREA),
+                           cv2.resize(w, size, interpolation=cv2.INTER_AREA)))
+        estimate: np.ndarray | None = None
+        for a, w in reversed(levels):
+            has = w > 1e-6
+            mean = np.divide(a, w, out=np.zeros_like(a), where=has)
+            if estimate is None:
+                estimate = mean
+            else:
+                up = cv2.resize(estimate, (a.shape[1], a.shape[0]),
+                                interpolation=cv2.INTER_LINEAR)
+                estimate = np.where(has, mean, up)
+        out[i] = np.where(v, band, estimate)
+    return out[0] if arr.ndim == 2 else out
+
+
+# ----------------------------------------------------------------------- fast path
+
+class SpectralDegrader:
+    """Degrade one image at many Q quickly (the ``"fast"`` method).
+
+    The truncated DCT-II coefficients of the image (invalid pixels filled by
+    :func:`fill_invalid`) up to the cutoff of ``q_min`` are computed once;
+    :meth:`degrade` then costs two small matrix products per band. Used by
+    :func:`degrade_array` and by the calibration, which evaluates many Q.
+
+    Parameters
+    ----------
+    image
+        (rows, cols) or bands-first (bands, rows, cols), DN.
+    phi
+        UAV pixels per satellite pixel (whole number).
+    q_min
+        Smallest Q that :meth:`degrade` will be asked for (sets how many
+        coefficients are kept: about 2N / (q_min φ) per axis).
+    valid
+        (rows, cols) bool mask, True = valid; None = all valid.
+    obscuration
+        Central obscuration, diameter ratio in [0, 1).
+    """
+
+    def __init__(self, image: np.ndarray, *, phi: int = 10, q_min: float,
+                 valid: np.ndarray | None = None, obscuration: float = 0.0,
+                 workers: int = -1) -> None:
+        self.phi = _check_phi(phi)
+        self.q_min = _check_q(q_min)
+        self.obscuration = _check_obscuration(obscuration)
+        arr = np.asarray(image)
+        stack = _as_stack(arr)
+        self.squeeze = arr.ndim == 2
+        self.shape = stack.shape[1:]
+        self.out_shape = _output_shape(self.shape, self.phi)
+        valid_b = _check_valid(valid, self.shape)
+        self.valid_out = (np.ones(self.out_shape, bool) if valid_b is None
+                          else block_all(valid_b, self.phi))
+        rows, cols = self.shape
+        self.n_coef = (n_coefficients(rows, q=self.q_min, phi=self.phi),
+                       n_coefficients(cols, q=self.q_min, phi=self.phi))
+        self._workers = workers
+        if valid_b is not None and valid_b.any():
+            stack = _as_stack(fill_invalid(stack, valid_b))
+        self._coef = np.stack([self._truncated_dct(band) for band in stack])
+        self._basis_rows = _resample_basis(rows, self.out_shape[0], self.n_coef[0], self.phi)
+        self._basis_cols = _resample_basis(cols, self.out_shape[1], self.n_coef[1], self.phi)
+
+    def _truncated_dct(self, band: np.ndarray) -> np.ndarray:
+        rows, _ = self.shape
+        k_r, k_c = self.n_coef
+        partial = np.empty((rows, k_c), np.float32)
+        for r0 in range(0, rows, _ROW_BLOCK):
+            block = band[r0:r0 + _ROW_BLOCK].astype(np.float32)
+            partial[r0:r0 + _ROW_BLOCK] = scipy.fft.dct(
+                block, type=2, norm="ortho", axis=1, workers=self._workers)[:, :k_c]
+        return scipy.fft.dct(partial, type=2, norm="ortho", axis=0,
+                             workers=self._workers)[:k_r]
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the cached coefficients and bases, bytes."""
+        return self._coef.nbytes + self._basis_rows.nbytes + self._basis_cols.nbytes
+
+    def degrade(self, q: float) -> np.ndarray:
+        """Degraded image at ``q`` ≥ ``q_min``: float64, (bands,) rows//φ × cols//φ, DN.
+
+        Invalid output pixels (see :attr:`valid_out`) are 0.
+        """
+        q = _check_q(q)
+        if q < self.q_min * (1 - 1e-12):
+            raise ValueError(f"q = {q} is below q_min = {self.q_min} this degrader was "
+                             "prepared for")
+        k_r = min(self.n_coef[0], n_coefficients(self.shape[0], q=q, phi=self.phi))
+        k_c = min(self.n_coef[1], n_coefficients(self.shape[1], q=q, phi=self.phi))
+        transfer = optics_otf_dct(self.shape, q=q, phi=self.phi, obscuration=self.obscuration,
+                                  n_coef=(k_r, k_c))
+        a_r = self._basis_rows[:, :k_r]
+        a_c = self._basis_cols[:, :k_c]
+
+        n_r, n_c = self.out_shape
+        rows_first = n_r * k_c * (k_r + n_c) <= n_c * k_r * (k_c + n_r)  # fewer flops
+
+        def apply(c: np.ndarray) -> np.ndarray:
+            z = c[:k_r, :k_c] * transfer
+            return (a_r @ z) @ a_c.T if rows_first else a_r @ (z @ a_c.T)
+
+        out = np.stack([apply(c) for c in self._coef])
+        out[:, ~self.valid_out] = 0.0
+        return out[0] if self.squeeze else out
+
+
+# ----------------------------------------------------------------------- public API
+
+def degrade_array(image: np.ndarray, *, q: float, phi: int = 10,
+                  valid: np.ndarray | None = None, method: Method = "fast",
+                  obscuration: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate a satellite image: (image ⊛ PSF(q)) ↓φ, bicubic.
+
+    Parameters
+    ----------
+    image
+        UAV image, bands-first (bands, rows, cols) or (rows, cols), in DN.
+    q
+        Q = λ f / (D p) on the satellite detector pitch (dimensionless, > 0).
+    phi
+        Satellite GSD / UAV GSD, a whole number (10 for 0.05 m → 0.5 m).
+    valid
+        (rows, cols) bool mask of valid UAV pixels (True = valid); None = all.
+    method
+        ``"fast"`` (default) or ``"reference"`` (full-resolution blur then
+        ``cv2.resize`` INTER_CUBIC, literally the paper); they agree within 1 DN
+        after rounding.
+    obscuration
+        Central obscuration of the telescope, diameter ratio in [0, 1).
+
+    Returns
+    -------
+    degraded : numpy.ndarray
+        Float64, same layout as ``image`` with rows//φ × cols//φ pixels, DN
+        (not rounded; use :func:`to_dtype`). Invalid pixels are 0.
+    valid_out : numpy.ndarray
+        Bool (rows//φ, cols//φ): True where all φ × φ source pixels are valid.
+    """
+    q = _check_q(q)
+    phi = _check_phi(phi)
+    obscuration = _check_obscuration(obscuration)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    arr = np.asarray(image)
+    stack = _as_stack(arr)
+    out_shape = _output_shape(stack.shape[1:], phi)
+    valid_b = _check_valid(valid, stack.shape[1:])
+    valid_out = np.ones(out_shape, bool) if valid_b is None else block_all(valid_b, phi)
+    if not valid_out.any():
+        out = np.zeros((stack.shape[0], *out_shape))
+    elif method == "reference":
+        filled = stack if valid_b is None else _as_stack(fill_invalid(stack, valid_b))
+        out = _degrade_reference(filled, q=q, phi=phi, obscuration=obscuration)
+        out[:, ~valid_out] = 0.0
+    else:
+        out = SpectralDegrader(stack, phi=phi, q_min=q, valid=valid_b,
+                               obscuration=obscuration).degrade(q)
+    return (out[0] if arr.ndim == 2 else out), valid_out

@@ -1,0 +1,450 @@
+"""Pipeline steps ``calibrate`` and ``degrade``: the I/O around the pure kernels.
+
+``run_calibrate(site, out_dir)``
+    Reads ``grid/satellite.tif`` (the satellite scene on the shared 0.5 m grid)
+    and ``aligned/<flight>.tif`` (each flight on the aligned 0.05 m grid, nested
+    in the same origin family). For each flight, over its common extent with
+    the satellite (both valid), it measures the satellite's Laplacian variance,
+    the LV of the degraded flight as a function of Q, and solves for the Q
+    where they are equal. Writes ``calibration.json`` and ``calibration.png``.
+``run_degrade(site, out_dir, q=None)``
+    Degrades every ``tiles/<flight>/<tile>.tif`` to ``degraded/<flight>/<tile>.tif``
+    at Q (default: the mean Q of ``calibration.json``), with the tile's
+    transform scaled by φ (same origin), same CRS, the valid mask propagated
+    and provenance tags.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.windows import Window
+from tqdm import tqdm
+
+from geosim import __version__
+from geosim.config import SiteConfig
+from geosim.degrade.blur import laplacian_moments, to_grey
+from geosim.degrade.calibrate import (
+    PLAUSIBLE_Q,
+    GreyWindowReader,
+    build_blocked_lv,
+    quantization_lv,
+    solve_q,
+)
+from geosim.degrade.core import METHODS, degrade_array, to_dtype
+from geosim.degrade.plot import plot_calibration
+from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
+from geosim.io.atomic import write_json
+from geosim.io.raster import (
+    image_band_indexes,
+    open_raster,
+    provenance_tags,
+    read_valid_mask,
+    write_geotiff,
+)
+from geosim.physics.psf import first_zero_px
+
+CALIBRATION_JSON = "calibration.json"
+CALIBRATION_PNG = "calibration.png"
+#: Q values at which the LV curve is sampled for the figure and the JSON.
+N_CURVE_SAMPLES = 16
+#: Calibration blocks: core side and margin, in satellite pixels (margin error < 2e-4
+#: relative LV up to Q = 8 with 16 px; see tests/test_calibrate.py).
+BLOCK_SAT_PX = 300
+MARGIN_SAT_PX = 24
+_GREY_CHUNK_ROWS = 512
+
+LV_DEFINITION = (
+    "variance (1/N) of the paper's Laplacian [[1/6,2/3,1/6],[2/3,-10/3,2/3],[1/6,2/3,1/6]] "
+    "on BT.601 luma, 0-255 grey levels, over 0.5 m pixels whose 3x3 neighbourhood is valid in "
+    "both the satellite and the degraded flight (a degraded pixel is valid when all its phi x "
+    "phi UAV pixels are) and at least guard_sat_px from UAV no-data. Degraded LV is computed "
+    "on the unrounded grey image plus the expected LV of rounding the delivered bands to the "
+    "flight's dtype (quantization_lv)."
+)
+
+
+# --------------------------------------------------------------------------- helpers
+
+def _rel(path: Path, base: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(base.resolve()))
+    except ValueError:
+        return str(path)
+
+
+def _sat_offset(uav_tf: Affine, sat_tf: Affine, phi: int, what: str) -> tuple[int, int]:
+    """(row, col) of a UAV raster's north-west corner on the satellite grid, whole pixels."""
+    if uav_tf.b != 0 or uav_tf.d != 0 or sat_tf.b != 0 or sat_tf.d != 0:
+        raise RasterError(f"{what}: rotated georeference; the shared grid is north-up — "
+                          "re-run 'geosim grid' and 'geosim align'")
+    for name, u, s in (("x", uav_tf.a, sat_tf.a), ("y", uav_tf.e, sat_tf.e)):
+        if not math.isclose(u * phi, s, rel_tol=1e-9):
+            raise RasterError(f"{what}: {name} pixel size {u} m × φ = {phi} is not the "
+                              f"satellite grid's {s} m; both must come from the same "
+                              "'geosim grid' run (re-run grid and align)")
+    col = (uav_tf.c - sat_tf.c) / sat_tf.a
+    row = (uav_tf.f - sat_tf.f) / sat_tf.e
+    if abs(col - round(col)) > 1e-6 or abs(row - round(row)) > 1e-6:
+        raise RasterError(f"{what}: its origin is {col:.6f}, {row:.6f} satellite pixels from "
+                          "the satellite grid's, not a whole number: it is not on the shared "
+                          "nested grid; re-run 'geosim grid' and 'geosim align'")
+    return round(row), round(col)
+
+
+def _grey_reader(ds: rasterio.DatasetReader, bands: list[int], row0: int, col0: int,
+                 dn_max: float | None) -> GreyWindowReader:
+    """Reader of grey windows relative to (row0, col0) of ``ds``; outside = invalid."""
+
+    def read(r: int, c: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        grey = np.zeros((h, w), np.float32)
+        valid = np.zeros((h, w), bool)
+        rr, cc = row0 + r, col0 + c
+        a0, b0 = max(rr, 0), max(cc, 0)
+        a1, b1 = min(rr + h, ds.height), min(cc + w, ds.width)
+        if a1 <= a0 or b1 <= b0:
+            return grey, valid
+        for s0 in range(a0, a1, _GREY_CHUNK_ROWS):
+            s1 = min(s0 + _GREY_CHUNK_ROWS, a1)
+            win = Window(b0, s0, b1 - b0, s1 - s0)
+            data = ds.read(bands, window=win)
+            grey[s0 - rr:s1 - rr, b0 - cc:b1 - cc] = to_grey(data, dn_max=dn_max)
+            valid[s0 - rr:s1 - rr, b0 - cc:b1 - cc] = read_valid_mask(ds, win)
+        return grey, valid
+
+    return read
+
+
+def _quantization_step_grey(dtype: str) -> float:
+    dt = np.dtype(dtype)
+    if np.issubdtype(dt, np.integer):
+        return 255.0 / (255.0 if dt == np.uint8 else float(np.iinfo(dt).max))
+    return 0.0
+
+
+def guard_px(q_max: float) -> int:
+    """Guard band (satellite px) left out next to UAV no-data: the first dark ring at q_max."""
+    return min(MARGIN_SAT_PX, math.ceil(first_zero_px(q_max, phi=1)))
+
+
+def plausibility_warning(q: float, *, what: str = "calibrated Q") -> str | None:
+    """A warning when Q is outside the 0.5–2 range of real cameras, pointing to diagnosis."""
+    lo, hi = PLAUSIBLE_Q
+    if q > hi:
+        return (f"{what} = {q:.2f} is above the {lo:g}–{hi:g} of real satellite cameras: the "
+                "satellite scene is blurrier than diffraction alone explains, so Q is absorbing "
+                "physics the paper's model leaves out (detector integration, atmosphere, "
+                "motion smear, off-nadir viewing, resampling of the product). Run "
+                "`geosim diagnose SITE.toml --out DIR` to find which.")
+    if q < lo:
+        return (f"{what} = {q:.2f} is below the {lo:g}–{hi:g} of real satellite cameras: the "
+                "satellite scene has more Laplacian variance than diffraction allows "
+                "(sensor noise, sharpening or compression artefacts raise it). Run "
+                "`geosim diagnose SITE.toml --out DIR` to find which.")
+    return None
+
+
+# --------------------------------------------------------------------------- calibrate
+
+def calibrate_flight(flight_id: str, flight_path: Path, sat: rasterio.DatasetReader, *,
+                     phi: int, q_min: float, q_max: float, obscuration: float = 0.0,
+                     n_curve: int = N_CURVE_SAMPLES, xtol: float = 1e-4) -> dict[str, Any]:
+    """Calibrate one flight against the satellite scene (opened, on the shared grid).
+
+    Returns
+    -------
+    dict
+        ``status`` (``ok``, ``no_overlap`` or ``failed``), ``q``, ``lv_satellite``,
+        ``lv_at_q``, the LV curve, the area used and its window on the satellite grid.
+    """
+    what = f"flight {flight_id}"
+    with open_raster(flight_path, what=f"aligned {what}") as ds:
+        if ds.crs != sat.crs:
+            raise RasterError(f"aligned {what} ({flight_path}) is in {ds.crs}, the satellite "
+                              f"grid in {sat.crs}; re-run 'geosim grid' and 'geosim align'")
+        row_off, col_off = _sat_offset(ds.transform, sat.transform, phi, f"aligned {what}")
+        rows_s, cols_s = ds.height // phi, ds.width // phi
+        r0, c0 = max(row_off, 0), max(col_off, 0)
+        r1, c1 = min(row_off + rows_s, sat.height), min(col_off + cols_s, sat.width)
+        result: dict[str, Any] = {"flight": flight_id, "aligned": flight_path.name}
+        if r1 <= r0 or c1 <= c0:
+            return {**result, "status": "no_overlap",
+                    "reason": "the flight does not overlap the satellite scene"}
+        window = Window(c0, r0, c1 - c0, r1 - r0)
+        sat_bands = image_band_indexes(sat)
+        sat_grey = to_grey(sat.read(sat_bands, window=window))
+        sat_valid = read_valid_mask(sat, window)
+        bands = image_band_indexes(ds)
+        dtype = ds.dtypes[bands[0] - 1]
+        offset = quantization_lv(_quantization_step_grey(dtype), bands=len(bands))
+        reader = _grey_reader(ds, bands, (r0 - row_off) * phi, (c0 - col_off) * phi, None)
+        n_blocks = math.ceil((r1 - r0) / BLOCK_SAT_PX) * math.ceil((c1 - c0) / BLOCK_SAT_PX)
+        with tqdm(total=n_blocks, desc=f"calibrate {flight_id}", unit="block",
+                  disable=None, leave=False) as bar:
+            model = build_blocked_lv(reader, (r1 - r0, c1 - c0), phi=phi, q_min=q_min,
+                                     out_mask=sat_valid, block_sat_px=BLOCK_SAT_PX,
+                                     margin_sat_px=MARGIN_SAT_PX, obscuration=obscuration,
+                                     offset_lv=offset, guard_sat_px=guard_px(q_max),
+                                     progress=bar.update)
+    lv_mask = model.lv_mask
+    n_pixels = int(lv_mask.sum())
+    result.update({"window_sat_px": [c0, r0, c1 - c0, r1 - r0], "n_pixels": n_pixels,
+                   "area_m2": round(n_pixels * abs(sat.transform.a * sat.transform.e), 3),
+                   "uav_dtype": dtype, "quantization_lv": offset,
+                   "guard_sat_px": guard_px(q_max)})
+    if n_pixels < 9:
+        return {**result, "status": "no_overlap",
+                "reason": "fewer than 9 satellite pixels are valid in both the satellite and "
+                          "the degraded flight (after eroding by the Laplacian's reach)"}
+    lv_sat = laplacian_moments(sat_grey, lv_mask).variance
+    q_curve = np.linspace(q_min, q_max, n_curve)
+    curve = [model(q) for q in q_curve]
+    result.update({"lv_satellite": lv_sat,
+                   "curve": {"q": q_curve.tolist(), "lv": curve}})
+    try:
+        sol = solve_q(model, lv_sat, q_min=q_min, q_max=q_max, xtol=xtol, name=what)
+    except CalibrationError as exc:
+        return {**result, "status": "failed", "error": str(exc)}
+    return {**result, "status": "ok", "q": sol.q, "lv_at_q": sol.lv_at_q,
+            "lv_at_q_min": sol.lv_at_q_min, "lv_at_q_max": sol.lv_at_q_max,
+            "evaluations": sol.evaluations}
+
+
+def run_calibrate(site: SiteConfig, out_dir: str | Path) -> dict[str, Any]:
+    """Calibrate Q of every flight against the satellite scene; write JSON and figure.
+
+    Parameters
+    ----------
+    site
+        The validated site (its ``parameters`` give φ, ``q_min`` and ``q_max``).
+    out_dir
+        Run folder holding ``grid/satellite.tif`` and ``aligned/<flight>.tif``.
+
+    Returns
+    -------
+    dict
+        Summary: ``mean_q``, per-flight ``q``, ``warning`` and the files written.
+
+    Raises
+    ------
+    InputFileError
+        An input of this step is missing (run the earlier steps first).
+    CalibrationError
+        No flight could be calibrated (``calibration.json`` is still written).
+    """
+    out = Path(out_dir)
+    p = site.parameters
+    if site.satellite is None:
+        raise ConfigError(f"site {site.name!r} has no [satellite] scene; calibration needs one "
+                          "(add a [satellite] table with the image path)")
+    sat_path = out / "grid" / "satellite.tif"
+    if not sat_path.is_file():
+        raise InputFileError(f"{sat_path} not found; run 'geosim grid' (or 'geosim run') first")
+    paths = {f.id: out / "aligned" / f"{f.id}.tif" for f in site.flights}
+    for fid, path in paths.items():
+        if not path.is_file():
+            raise InputFileError(f"{path} not found; run 'geosim align' first (flight {fid})")
+    start = time.perf_counter()
+    with open_raster(sat_path, what="satellite scene on the shared grid") as sat:
+        if not image_band_indexes(sat):
+            raise RasterError(f"{sat_path}: no image bands")
+        flights = [calibrate_flight(fid, path, sat, phi=p.phi, q_min=p.q_min, q_max=p.q_max)
+                   for fid, path in paths.items()]
+    ok = [f for f in flights if f["status"] == "ok"]
+    mean_q = float(np.mean([f["q"] for f in ok])) if ok else None
+    warnings = [w for f in ok if (w := plausibility_warning(f["q"], what=f"Q of {f['flight']}"))]
+    warning = plausibility_warning(mean_q, what="the mean calibrated Q") if ok else None
+    doc: dict[str, Any] = {
+        "site": site.name,
+        "geosim_version": __version__,
+        "satellite": _rel(sat_path, out),
+        "satellite_source": str(site.satellite.image),
+        "satellite_acquired": (site.satellite.acquired.isoformat()
+                               if site.satellite.acquired else None),
+        "phi": p.phi, "uav_gsd_m": p.uav_gsd_m, "sat_gsd_m": p.sat_gsd_m,
+        "q_min": p.q_min, "q_max": p.q_max, "obscuration": 0.0,
+        "lv_definition": LV_DEFINITION,
+        "solver": "Brent's method on LV(Q) - LV_satellite over [q_min, q_max], xtol 1e-4",
+        "plausible_q_range": list(PLAUSIBLE_Q),
+        "flights": flights,
+        "mean_q": mean_q,
+        "q_std": float(np.std([f["q"] for f in ok])) if ok else None,
+        "n_calibrated": len(ok),
+        "warning": warning,
+        "flight_warnings": warnings,
+        "seconds": round(time.perf_counter() - start, 3),
+    }
+    write_json(out / CALIBRATION_JSON, doc)
+    plot_calibration(doc, out / CALIBRATION_PNG)
+    if not ok:
+        reasons = "; ".join(f"{f['flight']}: {f.get('error') or f.get('reason')}"
+                            for f in flights)
+        raise CalibrationError(f"no flight could be calibrated against the satellite scene "
+                               f"({reasons}); see {out / CALIBRATION_JSON}")
+    per = ", ".join(f"{f['flight']} {f['q']:.2f}" for f in ok)
+    text = f"mean Q = {mean_q:.2f} over {len(ok)} flight(s) ({per})"
+    skipped = [f["flight"] for f in flights if f["status"] != "ok"]
+    if skipped:
+        text += f"; not calibrated: {', '.join(skipped)}"
+    return {"mean_q": mean_q, "q": {f["flight"]: f["q"] for f in ok},
+            "lv_satellite": {f["flight"]: f["lv_satellite"] for f in ok},
+            "not_calibrated": skipped, "warning": warning,
+            "files": [CALIBRATION_JSON, CALIBRATION_PNG],
+            "text": text + (" — Q outside 0.5–2: run geosim diagnose" if warning else "")}
+
+
+# --------------------------------------------------------------------------- degrade
+
+def read_calibrated_q(out_dir: str | Path) -> float:
+    """Mean Q from ``out_dir/calibration.json``."""
+    path = Path(out_dir) / CALIBRATION_JSON
+    if not path.is_file():
+        raise InputFileError(f"{path} not found; run 'geosim calibrate' first, or give Q "
+                             "explicitly (geosim degrade ... --q 4.34)")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputFileError(f"{path} is not valid JSON ({exc}); re-run 'geosim calibrate'") \
+            from None
+    q = doc.get("mean_q") if isinstance(doc, dict) else None
+    if not isinstance(q, (int, float)) or not math.isfinite(q) or q <= 0:
+        raise CalibrationError(f"{path} has no calibrated mean Q (mean_q = {q!r}); fix the "
+                               "calibration or give Q explicitly with --q")
+    return float(q)
+
+
+def degraded_transform(tile_transform: Affine, phi: int) -> Affine:
+    """The 0.5 m tile's transform: same origin, pixel size × φ (exactly)."""
+    return tile_transform @ Affine.scale(phi)
+
+
+def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
+                 method: str = "fast", obscuration: float = 0.0,
+                 uav_gsd_m: float | None = None, tags: dict[str, str] | None = None,
+                 ) -> dict[str, Any]:
+    """Degrade one UAV tile GeoTIFF to a satellite-resolution GeoTIFF.
+
+    Parameters
+    ----------
+    src, dst
+        Input UAV tile and output path (written atomically).
+    q
+        Q (dimensionless).
+    phi
+        UAV pixels per satellite pixel (whole number).
+    method
+        ``"fast"`` or ``"reference"``.
+    uav_gsd_m
+        Expected tile pixel size in metres (checked when given).
+    tags
+        Extra GeoTIFF tags (provenance).
+
+    Returns
+    -------
+    dict
+        ``shape`` (rows, cols) and ``valid_fraction`` of the output.
+    """
+    src, dst = Path(src), Path(dst)
+    with open_raster(src, what="UAV tile") as ds:
+        if uav_gsd_m is not None and not math.isclose(abs(ds.transform.a), uav_gsd_m,
+                                                       rel_tol=1e-6):
+            raise RasterError(f"{src}: pixel size {abs(ds.transform.a)} m is not "
+                              f"parameters.uav_gsd_m = {uav_gsd_m} m; the tiles come from "
+                              "another run: re-run 'geosim tile'")
+        if ds.height < phi or ds.width < phi:
+            raise RasterError(f"{src}: {ds.width} × {ds.height} px is smaller than one "
+                              f"satellite pixel ({phi} × {phi} px)")
+        bands = image_band_indexes(ds)
+        image = ds.read(bands)
+        valid = read_valid_mask(ds)
+        transform, crs, nodata = ds.transform, ds.crs, ds.nodata
+        descriptions = [ds.descriptions[b - 1] for b in bands]
+    degraded, valid_out = degrade_array(image, q=q, phi=phi, valid=valid, method=method,
+                                        obscuration=obscuration)
+    out = to_dtype(degraded, image.dtype)
+    write_geotiff(dst, out, transform=degraded_transform(transform, phi), crs=crs,
+                  nodata=nodata, mask=valid_out,
+                  band_descriptions=descriptions if all(descriptions) else None,
+                  tags=tags)
+    return {"shape": list(out.shape[1:]), "valid_fraction": float(valid_out.mean())}
+
+
+def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *,
+                method: str = "fast", obscuration: float = 0.0) -> dict[str, Any]:
+    """Degrade every UAV tile to the satellite grid.
+
+    Parameters
+    ----------
+    site
+        The validated site (φ and GSDs from its parameters).
+    out_dir
+        Run folder with ``tiles/<flight>/<tile>.tif``; writes ``degraded/<flight>/<tile>.tif``.
+    q
+        Q to use; None = the mean calibrated Q from ``calibration.json``.
+    method
+        ``"fast"`` (default) or ``"reference"`` (the paper's literal operation).
+    obscuration
+        Central obscuration of the simulated telescope, diameter ratio in [0, 1).
+
+    Returns
+    -------
+    dict
+        Summary: ``q``, ``q_source``, ``method``, tiles per flight, timing.
+    """
+    out = Path(out_dir)
+    p = site.parameters
+    if method not in METHODS:
+        raise ConfigError(f"method {method!r} is not one of {', '.join(METHODS)}")
+    if not 0.0 <= obscuration < 1.0:
+        raise ConfigError(f"obscuration = {obscuration} must be a diameter ratio in [0, 1)")
+    if q is None:
+        q, q_source = read_calibrated_q(out), CALIBRATION_JSON
+    else:
+        q_source = "user"
+        if not (isinstance(q, (int, float)) and math.isfinite(q) and q > 0):
+            raise ConfigError(f"Q = {q!r} must be a positive number (e.g. 4.34)")
+        q = float(q)
+    tiles_dir = out / "tiles"
+    if not tiles_dir.is_dir():
+        raise InputFileError(f"{tiles_dir} not found; run 'geosim tile' (or 'geosim run') first")
+    jobs = [(f.id, path) for f in site.flights
+            for path in sorted((tiles_dir / f.id).glob("*.tif"))]
+    if not jobs:
+        raise InputFileError(f"no tiles in {tiles_dir}/<flight>/ for flights "
+                             f"{', '.join(site.flight_ids)}; run 'geosim tile' first")
+    params = {"q": q, "q_source": q_source, "phi": p.phi, "uav_gsd_m": p.uav_gsd_m,
+              "sat_gsd_m": p.sat_gsd_m, "method": method, "obscuration": obscuration,
+              "model": "I_sat = (I_uav conv PSF_airy(Q)) downsampled by phi with "
+                       "cv2 INTER_CUBIC; symmetric boundary; no-data filled by pull-push"}
+    counts: dict[str, int] = {fid: 0 for fid in site.flight_ids}
+    start = time.perf_counter()
+    for fid, src in tqdm(jobs, desc="degrade", unit="tile", disable=None):
+        dst = out / "degraded" / fid / src.name
+        tags = {**provenance_tags("degrade", params, [_rel(src, out)]),
+                "GEOSIM_Q": f"{q:.6g}", "GEOSIM_METHOD": method,
+                "GEOSIM_UAV_GSD_M": f"{p.uav_gsd_m:g}", "GEOSIM_SAT_GSD_M": f"{p.sat_gsd_m:g}",
+                "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem}
+        degrade_tile(src, dst, q=q, phi=p.phi, method=method, obscuration=obscuration,
+                     uav_gsd_m=p.uav_gsd_m, tags=tags)
+        counts[fid] += 1
+    for fid in site.flight_ids:  # drop degraded tiles whose UAV tile no longer exists
+        d = out / "degraded" / fid
+        if d.is_dir():
+            keep = {src.name for f, src in jobs if f == fid}
+            for stale in d.glob("*.tif"):
+                if stale.name not in keep:
+                    stale.unlink()
+    seconds = time.perf_counter() - start
+    warning = plausibility_warning(q, what="Q")
+    return {"q": q, "q_source": q_source, "method": method, "tiles": len(jobs),
+            "tiles_per_flight": counts, "out": "degraded",
+            "seconds_per_tile": round(seconds / len(jobs), 3), "warning": warning,
+            "text": f"{len(jobs)} tile(s) degraded to {p.sat_gsd_m:g} m at Q = {q:.3g} "
+                    f"({q_source}, {method} method) in degraded/"}
