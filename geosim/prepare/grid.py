@@ -180,7 +180,7 @@ class SiteGrid:
 
     def uav_window_transform(self, window: Window) -> Affine:
         """Transform of a UAV-grid window: the grid transform offset by whole pixels."""
-        return self.uav_transform * Affine.translation(int(window.col_off), int(window.row_off))
+        return self.uav_transform @ Affine.translation(int(window.col_off), int(window.row_off))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form (``grid/grid.json``): CRS as WKT and EPSG, transforms as 6 numbers."""

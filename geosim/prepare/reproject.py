@@ -52,7 +52,7 @@ def resampling_method(name: str) -> Resampling:
 def dataset_corner_bounds(ds: rasterio.DatasetReader) -> tuple[float, float, float, float]:
     """Bounding box of a dataset's four pixel-grid corners in its own CRS (rotation-safe)."""
     t = ds.transform
-    xs, ys = zip(*(t * (c, r) for c, r in ((0, 0), (ds.width, 0), (0, ds.height),
+    xs, ys = zip(*(t @ (c, r) for c, r in ((0, 0), (ds.width, 0), (0, ds.height),
                                             (ds.width, ds.height))), strict=True)
     return min(xs), min(ys), max(xs), max(ys)
 
@@ -75,7 +75,7 @@ def source_window_for(src: rasterio.DatasetReader, dst_crs: CRS, dst_bounds: tup
     if not all(map(math.isfinite, sb)):
         return None
     inv = ~src.transform
-    cols, rows = zip(*(inv * (x, y) for x, y in ((sb[0], sb[1]), (sb[0], sb[3]),
+    cols, rows = zip(*(inv @ (x, y) for x, y in ((sb[0], sb[1]), (sb[0], sb[3]),
                                                   (sb[2], sb[1]), (sb[2], sb[3]))), strict=True)
     c0 = max(0, math.floor(min(cols)) - pad_px)
     r0 = max(0, math.floor(min(rows)) - pad_px)
@@ -197,7 +197,7 @@ def reproject_to_grid(src_path: str | os.PathLike[str], dst_path: str | os.PathL
             for win in tqdm(windows, desc=f"reproject {what}", unit="block",
                             disable=None if progress is None else not progress, leave=False):
                 h, w = int(win.height), int(win.width)
-                dst_t = transform * Affine.translation(int(win.col_off), int(win.row_off))
+                dst_t = transform @ Affine.translation(int(win.col_off), int(win.row_off))
                 swin = source_window_for(src, crs, window_bounds(win, transform))
                 if swin is None:
                     out = np.zeros((len(bands), h, w), dtype=dtype)

@@ -1,0 +1,398 @@
+"""Pipeline steps of the map-coordinate preparation: grid → footprints → align → tiles → pairs.
+
+Each ``run_<step>(site, out_dir) -> dict`` reads earlier outputs from ``out_dir``
+(layout in the team contract), writes its own atomically and returns a small
+JSON-able summary (``text`` is the one-line human version).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import geopandas as gpd
+import numpy as np
+import rasterio
+
+from geosim.config import SiteConfig
+from geosim.errors import InputFileError
+from geosim.io.atomic import write_json, write_text
+from geosim.io.raster import open_raster, provenance_tags
+from geosim.io.vector import write_geojson, write_gpkg
+from geosim.prepare import alignment as al
+from geosim.prepare.footprints import common_extent, raster_footprint
+from geosim.prepare.grid import SiteGrid, resolve_site_crs, snap_grid, union_bounds
+from geosim.prepare.pairs import pair_rows, pairs_csv_text
+from geosim.prepare.reproject import bounds_in_crs, reproject_to_grid
+from geosim.prepare.tiles import (
+    index_records,
+    iter_tiles,
+    select_tiles,
+    window_coverage,
+    write_tile,
+)
+
+#: GDAL block cache for every step, MB (GDAL's default is 5 % of RAM): bounds memory.
+GDAL_CACHE_MB = 256
+
+#: A common extent smaller than this many UAV pixels (100 × 100) is "tiny": an error.
+MIN_COMMON_UAV_PX = 100 * 100
+#: Side of the local-check windows (UAV px) and the largest block read at once.
+LOCAL_WINDOW_PX = 256
+BLOCK_PX = 2048
+
+
+def _bounded_gdal_cache(step: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
+    """Run a step with GDAL's block cache limited to :data:`GDAL_CACHE_MB`."""
+    @functools.wraps(step)
+    def wrapper(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
+            return step(site, out_dir)
+    return wrapper
+
+
+def _crs_name(crs: Any) -> str:
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else crs.to_wkt()
+
+
+def read_grid(out_dir: Path) -> SiteGrid:
+    """``out_dir/grid/grid.json`` as a :class:`SiteGrid` (InputFileError if absent)."""
+    path = Path(out_dir) / "grid" / "grid.json"
+    if not path.is_file():
+        raise InputFileError(f"{path} not found; run 'geosim grid' (or 'geosim run') first")
+    return SiteGrid.from_dict(json.loads(path.read_text()))
+
+
+# --------------------------------------------------------------------------- grid
+
+
+@_bounded_gdal_cache
+def run_grid(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+    """Choose the site CRS, build the nested grids, reproject flights and satellite onto them.
+
+    Writes ``grid/grid.json``, ``grid/<flight>.tif`` (UAV grid, bicubic, internal mask)
+    and ``grid/satellite.tif`` (satellite grid, cut to the grid's extent).
+    """
+    out = Path(out_dir)
+    p = site.parameters
+    lonlat, what = [], {}
+    for f in site.flights:
+        with open_raster(f.image, what=f"flight {f.id}") as ds:
+            lonlat.append(bounds_in_crs(ds, "EPSG:4326"))
+    crs = resolve_site_crs(site.crs, lonlat)
+    extents = []
+    for f in site.flights:
+        with open_raster(f.image, what=f"flight {f.id}") as ds:
+            extents.append(bounds_in_crs(ds, crs))
+            what[f.id] = ds.crs.to_string()
+    grid = snap_grid(union_bounds(extents), crs, uav_gsd_m=p.uav_gsd_m, sat_gsd_m=p.sat_gsd_m)
+    gdir = out / "grid"
+    gdir.mkdir(parents=True, exist_ok=True)
+    written: dict[str, Any] = {}
+    params = {"uav_gsd_m": p.uav_gsd_m, "sat_gsd_m": p.sat_gsd_m, "crs": _crs_name(crs),
+              "resampling": "bicubic"}
+    for f in site.flights:
+        written[f.id] = reproject_to_grid(
+            f.image, gdir / f"{f.id}.tif", crs=crs, transform=grid.uav_transform,
+            shape=grid.uav_shape, what=f"flight {f.id}", block_px=BLOCK_PX,
+            tags=provenance_tags("grid", params, [f.image]))
+    if site.satellite is not None:
+        written["satellite"] = reproject_to_grid(
+            site.satellite.image, gdir / "satellite.tif", crs=crs, transform=grid.sat_transform,
+            shape=grid.sat_shape, what="satellite scene", block_px=BLOCK_PX,
+            tags=provenance_tags("grid", params, [site.satellite.image]))
+    doc = grid.to_dict()
+    doc["extent_rule"] = ("union of the flights' extents, snapped outward to whole satellite "
+                          "pixels; the satellite scene is cut to it")
+    doc["sources"] = {k: {"source_crs": v["source_crs"], "valid_px": v["valid_px"]}
+                      for k, v in written.items()}
+    write_json(gdir / "grid.json", doc)
+    rows, cols = grid.uav_shape
+    return {"crs": _crs_name(crs), "uav_shape": list(grid.uav_shape),
+            "sat_shape": list(grid.sat_shape), "origin_m": [grid.uav_transform.c,
+                                                            grid.uav_transform.f],
+            "rasters": sorted(written),
+            "text": f"{_crs_name(crs)}, UAV grid {cols}×{rows} px at {p.uav_gsd_m} m, "
+                    f"{len(site.flights)} flight(s)"
+                    + (" + satellite" if site.satellite is not None else "")}
+
+
+# --------------------------------------------------------------------------- footprints
+
+
+@_bounded_gdal_cache
+def run_footprints(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+    """Trace valid-data footprints on the grid and intersect them.
+
+    Writes ``footprints.geojson`` (+ ``.gpkg`` in the site CRS) with each raster's
+    polygon and area, and ``common_extent.geojson`` (+ ``.gpkg``) with the flights'
+    intersection (``name = flights``, per-flight coverage) and its intersection with
+    the satellite footprint (``name = flights_and_satellite``).
+
+    Raises
+    ------
+    ExtentError
+        The flights' common extent is empty or smaller than 100 × 100 UAV pixels.
+    """
+    out = Path(out_dir)
+    grid = read_grid(out)
+    p = site.parameters
+    fps: dict[str, Any] = {}
+    rows = []
+    for f in site.flights:
+        path = out / "grid" / f"{f.id}.tif"
+        if not path.is_file():
+            raise InputFileError(f"{path} not found; run 'geosim grid' first")
+        fps[f.id] = raster_footprint(path, reduce_px=grid.phi, simplify_m=p.footprint_simplify_m)
+        rows.append({"id": f.id, "kind": "flight", "acquired": f.acquired.isoformat(),
+                     "source": str(f.image), "area_m2": fps[f.id].area,
+                     "bbox_area_m2": fps[f.id].envelope.area, "geometry": fps[f.id]})
+    sat_fp = None
+    sat_path = out / "grid" / "satellite.tif"
+    if site.satellite is not None and sat_path.is_file():
+        sat_fp = raster_footprint(sat_path, reduce_px=1, simplify_m=p.footprint_simplify_m)
+        rows.append({"id": "satellite", "kind": "satellite",
+                     "acquired": site.satellite.acquired.isoformat()
+                     if site.satellite.acquired else None,
+                     "source": str(site.satellite.image), "area_m2": sat_fp.area,
+                     "bbox_area_m2": sat_fp.envelope.area, "geometry": sat_fp})
+    gdf = gpd.GeoDataFrame(rows, geometry="geometry", crs=grid.crs.to_wkt())
+    write_geojson(gdf, out / "footprints.geojson")
+    write_gpkg(gdf, out / "footprints.gpkg", layer="footprints")
+
+    min_area = MIN_COMMON_UAV_PX * grid.uav_gsd_m ** 2
+    common = common_extent(fps, min_area_m2=min_area)
+    ce_rows = [{"name": "flights", "flights": ",".join(fps), "area_m2": common.area,
+                **{f"coverage_{k}": common.area / v.area for k, v in fps.items()},
+                "geometry": common}]
+    sat_area = None
+    if sat_fp is not None:
+        with_sat = common.intersection(sat_fp)
+        sat_area = with_sat.area
+        ce_rows.append({"name": "flights_and_satellite", "flights": ",".join(fps),
+                        "area_m2": sat_area,
+                        **{f"coverage_{k}": sat_area / v.area for k, v in fps.items()},
+                        "geometry": with_sat if not with_sat.is_empty else None})
+    ce = gpd.GeoDataFrame(ce_rows, geometry="geometry", crs=grid.crs.to_wkt())
+    write_geojson(ce, out / "common_extent.geojson")
+    write_gpkg(ce, out / "common_extent.gpkg", layer="common_extent")
+    summary = {"common_area_m2": round(common.area, 3),
+               "footprint_area_m2": {k: round(v.area, 3) for k, v in fps.items()},
+               "satellite_overlap_m2": None if sat_area is None else round(sat_area, 3)}
+    summary["text"] = (f"common extent {common.area:.0f} m² of {len(fps)} flight(s)"
+                       + ("" if sat_area is None else f", {sat_area:.0f} m² with the satellite"))
+    if sat_area is not None and sat_area <= 0:
+        summary["warning"] = ("the satellite footprint does not overlap the flights' common "
+                              "extent: calibration and diagnosis will have nothing to compare")
+    return summary
+
+
+def read_common_extent(out_dir: Path):
+    """The flights' common extent polygon (site CRS) from ``common_extent.gpkg``."""
+    path = Path(out_dir) / "common_extent.gpkg"
+    if not path.is_file():
+        raise InputFileError(f"{path} not found; run the footprints step ('geosim grid') first")
+    gdf = gpd.read_file(path)
+    return gdf.loc[gdf["name"] == "flights"].geometry.iloc[0]
+
+
+# --------------------------------------------------------------------------- align
+
+
+@_bounded_gdal_cache
+def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+    """Register every flight to the reference and resample it onto the aligned grid.
+
+    Writes ``aligned/<flight>.tif``, ``alignment.json`` and ``alignment_check.geojson``
+    (local shift arrows). See :mod:`geosim.prepare.alignment` for the conventions.
+
+    Raises
+    ------
+    AlignmentError
+        A flight's registration confidence is below ``min_align_confidence``.
+    """
+    out = Path(out_dir)
+    grid = read_grid(out)
+    common = read_common_extent(out)
+    p = site.parameters
+    ref_id = site.reference_flight
+    awin = al.aligned_window(common, grid)
+    rwin = al.registration_window(common, grid, awin, p.align_window_px)
+    gpath = {f.id: out / "grid" / f"{f.id}.tif" for f in site.flights}
+    ref_grey, ref_valid = al.read_grey_window(gpath[ref_id], rwin)
+    win_dict = {"col_off": int(rwin.col_off), "row_off": int(rwin.row_off),
+                "width": int(rwin.width), "height": int(rwin.height)}
+    entries: dict[str, dict[str, Any]] = {}
+    for f in site.flights:
+        if f.id == ref_id:
+            entry = al.identity_entry(rwin, grid.uav_transform)
+        else:
+            mov_grey, mov_valid = al.read_grey_window(gpath[f.id], rwin)
+            reg = al.register_pair(
+                ref_grey, ref_valid, mov_grey, mov_valid, min_confidence=p.min_align_confidence,
+                what=(f"flight {f.id} against reference flight {ref_id} (window {win_dict}; "
+                      "check the flight, choose another reference_flight or a larger "
+                      "align_window_px)"))
+            entry = al.correction_from_matrix(np.array(reg["matrix_px"]), rwin,
+                                              grid.uav_transform)
+            entry.update(confidence=reg["confidence"], matrix_px=reg["matrix_px"],
+                         kernel=reg["kernel"])
+        entry["window"] = win_dict
+        entry["path"] = f"aligned/{f.id}.tif"
+        entries[f.id] = entry
+
+    aligned_transform = grid.uav_window_transform(awin)
+    params = {"reference": ref_id, "align_window_px": p.align_window_px}
+    for f in site.flights:
+        m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
+        al.apply_alignment(gpath[f.id], out / "aligned" / f"{f.id}.tif", m_grid=m_grid,
+                           out_window=awin, block_px=BLOCK_PX, what=f.id,
+                           tags=provenance_tags("align", params, [gpath[f.id]]))
+
+    # local check: remaining shift field between each aligned flight and the reference
+    local: dict[str, Any] = {}
+    arrows = []
+    win_px = int(min(LOCAL_WINDOW_PX, max(64, min(awin.width, awin.height) // 4)))
+    for f in site.flights:
+        if f.id == ref_id:
+            continue
+        recs = al.local_check(out / "aligned" / f"{ref_id}.tif", out / "aligned" / f"{f.id}.tif",
+                              window_px=win_px, block_px=BLOCK_PX,
+                              min_confidence=p.min_align_confidence, what=f.id)
+        shifts = np.array([[r["dx_px"], r["dy_px"]] for r in recs]).reshape(-1, 2)
+        conf = np.array([r["confident"] for r in recs], dtype=bool)
+        local[f.id] = {**al.local_field_stats(shifts, conf, grid.uav_gsd_m),
+                       "window_px": win_px}
+        arrows.append(al.arrows_gdf(recs, aligned_transform, grid.crs.to_wkt(), f.id))
+    if arrows:
+        import pandas as pd
+
+        gdf = gpd.GeoDataFrame(pd.concat(arrows, ignore_index=True), geometry="geometry",
+                               crs=grid.crs.to_wkt())
+        write_geojson(gdf, out / "alignment_check.geojson")
+
+    doc = {
+        "reference": ref_id,
+        "convention": (
+            "Per flight, the correction C maps map coordinates (site CRS, x east, y north, m) "
+            "as stated by that flight's georeference to the aligned frame (the reference "
+            "flight's): C(p) = center_m + shift_m + scale * R(rotation_deg) * (p - center_m), "
+            "rotation counter-clockwise on a north-up map. matrix_px: reference window pixel "
+            "-> moving window pixel (pixel centres at integers); matrix_grid_px: the same in "
+            "site UAV grid corner coordinates."),
+        "crs": _crs_name(grid.crs),
+        "aligned_grid": {"transform": list(aligned_transform)[:6],
+                         "shape": [int(awin.height), int(awin.width)],
+                         "window_px": {"col_off": int(awin.col_off),
+                                       "row_off": int(awin.row_off),
+                                       "width": int(awin.width), "height": int(awin.height)}},
+        "registration_window_px": win_dict,
+        "flights": entries,
+        "local_check": local,
+    }
+    write_json(out / "alignment.json", doc)
+    worst = max((abs(e["shift_m"][0]) + abs(e["shift_m"][1]), k) for k, e in entries.items())
+    return {"reference": ref_id, "aligned_shape": [int(awin.height), int(awin.width)],
+            "flights": {k: {"shift_m": [round(v, 4) for v in e["shift_m"]],
+                            "rotation_deg": round(e["rotation_deg"], 5),
+                            "scale": round(e["scale"], 6),
+                            "confidence": round(e["confidence"], 3)}
+                        for k, e in entries.items()},
+            "local_median_shift_px": {k: v["median_shift_px"] for k, v in local.items()},
+            "text": f"{len(entries)} flight(s) on reference {ref_id}; aligned grid "
+                    f"{int(awin.width)}×{int(awin.height)} px; largest |shift| at flight "
+                    f"{worst[1]}"}
+
+
+# --------------------------------------------------------------------------- tiles
+
+
+def read_alignment(out_dir: Path) -> dict[str, Any]:
+    """``alignment.json`` (InputFileError if absent)."""
+    path = Path(out_dir) / "alignment.json"
+    if not path.is_file():
+        raise InputFileError(f"{path} not found; run 'geosim align' first")
+    return json.loads(path.read_text())
+
+
+@_bounded_gdal_cache
+def run_tiles(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+    """Cut every flight's aligned raster into ``tile_px`` tiles with the same ids.
+
+    Writes ``tiles/<flight>/<tile_id>.tif`` and ``tiles/index.geojson`` (+ ``.gpkg``).
+    """
+    from affine import Affine
+
+    out = Path(out_dir)
+    grid = read_grid(out)
+    doc = read_alignment(out)
+    p = site.parameters
+    ag = doc["aligned_grid"]
+    aligned_transform = Affine(*ag["transform"])
+    shape = (int(ag["shape"][0]), int(ag["shape"][1]))
+    tiles = list(iter_tiles(shape, aligned_transform, p.tile_px))
+    apath = {f.id: out / "aligned" / f"{f.id}.tif" for f in site.flights}
+    for fid, path in apath.items():
+        if not path.is_file():
+            raise InputFileError(f"{path} not found; run 'geosim align' first (flight {fid})")
+    coverage = {fid: [window_coverage(path, t.window) for t in tiles]
+                for fid, path in apath.items()}
+    selected = select_tiles(tiles, coverage, keep_partial=p.keep_partial_tiles)
+    from tqdm import tqdm
+
+    params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles}
+    written = 0
+    keep: dict[str, set[str]] = {fid: set() for fid in apath}
+    jobs = [(t, fid) for t, cov in selected for fid in apath if cov[fid] > 0]
+    for t, fid in tqdm(jobs, desc="tiles", unit="tile", disable=None):
+        write_tile(apath[fid], out / "tiles" / fid / f"{t.id}.tif", t,
+                   tags={**provenance_tags("tiles", params, [apath[fid]]), "GEOSIM_TILE_ID": t.id})
+        keep[fid].add(t.id)
+        written += 1
+    for fid, ids in keep.items():  # remove tiles left by an earlier run with other settings
+        d = out / "tiles" / fid
+        if d.is_dir():
+            for stale in d.glob("r*_c*.tif"):
+                if stale.stem not in ids:
+                    stale.unlink()
+    records = index_records(selected, _crs_name(grid.crs), p.tile_px)
+    from shapely.geometry import box
+
+    gdf = gpd.GeoDataFrame(records, geometry=[box(r["minx"], r["miny"], r["maxx"], r["maxy"])
+                                              for r in records], crs=grid.crs.to_wkt())
+    (out / "tiles").mkdir(parents=True, exist_ok=True)
+    write_geojson(gdf, out / "tiles" / "index.geojson")
+    write_gpkg(gdf, out / "tiles" / "index.gpkg", layer="tiles")
+    write_json(out / "tiles" / "index.json", {"crs": _crs_name(grid.crs), "tile_px": p.tile_px,
+                                              "aligned_transform": ag["transform"],
+                                              "tiles": records})
+    n_all = len(tiles)
+    return {"tiles": len(selected), "tiles_considered": n_all, "files": written,
+            "tile_px": p.tile_px,
+            "text": f"{len(selected)} of {n_all} tile(s) of {p.tile_px} px kept, "
+                    f"{written} file(s)"}
+
+
+# --------------------------------------------------------------------------- pairs
+
+
+@_bounded_gdal_cache
+def run_pairs(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+    """Write ``pairs.csv``: every unordered flight pair for every tile (paths, not pixels)."""
+    out = Path(out_dir)
+    path = out / "tiles" / "index.json"
+    if not path.is_file():
+        raise InputFileError(f"{path} not found; run 'geosim tile' first")
+    records = json.loads(path.read_text())["tiles"]
+    acquired = {f.id: f.acquired for f in site.flights}
+    rows = pair_rows(records, [f.id for f in site.flights], acquired)
+    write_text(out / "pairs.csv", pairs_csv_text(rows))
+    return {"pairs": len(rows), "tiles": len(records),
+            "text": f"{len(rows)} pair(s) over {len(records)} tile(s)"}
+
+
+__all__ = ["run_grid", "run_footprints", "run_align", "run_tiles", "run_pairs", "read_grid"]

@@ -1,0 +1,134 @@
+"""Tiles of the aligned grid: the same tile id is the same ground in every flight.
+
+Tile ``r{row:03d}_c{col:03d}`` covers aligned-grid pixels
+``[row·tile_px, (row+1)·tile_px) × [col·tile_px, (col+1)·tile_px)``; its transform is
+the aligned grid transform offset by whole tiles
+(``aligned_transform @ Affine.translation(col·tile_px, row·tile_px)``), and the aligned
+grid transform is the site grid transform offset by whole satellite pixels, so tiles
+stay nested in the satellite grid. A tile is kept when every flight's valid data
+covers all of it; with ``keep_partial_tiles`` every tile that some flight covers
+at least in part is kept, with its mask (pixels outside the data are masked).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.windows import Window
+from rasterio.windows import bounds as window_bounds
+
+from geosim.io.raster import create_geotiff
+
+
+def tile_id(row: int, col: int) -> str:
+    """Tile id ``r{row:03d}_c{col:03d}`` of tile row/column indexes on the aligned grid."""
+    return f"r{row:03d}_c{col:03d}"
+
+
+def tile_transform(aligned_transform: Affine, row: int, col: int, tile_px: int) -> Affine:
+    """Transform of a tile: the aligned grid transform offset by whole tiles."""
+    return aligned_transform @ Affine.translation(col * tile_px, row * tile_px)
+
+
+@dataclass(frozen=True)
+class TileSpec:
+    """One tile of the aligned grid."""
+
+    row: int
+    col: int
+    window: Window       # on the aligned grid; may extend beyond it (partial tiles)
+    transform: Affine
+
+    @property
+    def id(self) -> str:
+        """``r{row:03d}_c{col:03d}``."""
+        return tile_id(self.row, self.col)
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(minx, miny, maxx, maxy)`` in the site CRS, metres."""
+        return window_bounds(Window(0, 0, self.window.width, self.window.height), self.transform)
+
+
+def iter_tiles(shape: tuple[int, int], aligned_transform: Affine, tile_px: int
+               ) -> Iterator[TileSpec]:
+    """Every tile touching an aligned grid of ``shape = (rows, cols)``, row-major."""
+    rows, cols = shape
+    for r in range(math.ceil(rows / tile_px)):
+        for c in range(math.ceil(cols / tile_px)):
+            yield TileSpec(r, c, Window(c * tile_px, r * tile_px, tile_px, tile_px),
+                           tile_transform(aligned_transform, r, c, tile_px))
+
+
+def window_coverage(path: str | os.PathLike[str], window: Window) -> float:
+    """Fraction of ``window`` (may extend past the raster) that is valid data."""
+    with rasterio.open(path) as ds:
+        m = ds.read_masks(1, window=window, boundless=True)
+    return float(np.count_nonzero(m)) / m.size
+
+
+def select_tiles(tiles: Sequence[TileSpec], coverage: Mapping[str, Sequence[float]], *,
+                 keep_partial: bool) -> list[tuple[TileSpec, dict[str, float]]]:
+    """Tiles to cut, with each flight's coverage fraction.
+
+    Parameters
+    ----------
+    tiles
+        All tiles of the aligned grid.
+    coverage
+        ``{flight: [valid fraction of each tile]}`` in the order of ``tiles``.
+    keep_partial
+        False: keep a tile only if every flight covers it fully (fraction 1).
+        True: keep it if any flight covers any of it.
+    """
+    out = []
+    for i, t in enumerate(tiles):
+        cov = {f: float(v[i]) for f, v in coverage.items()}
+        full = all(v >= 1.0 for v in cov.values())
+        if full or (keep_partial and any(v > 0 for v in cov.values())):
+            out.append((t, cov))
+    return out
+
+
+def write_tile(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str],
+               tile: TileSpec, *, tags: Mapping[str, str] | None = None) -> Path:
+    """Cut one tile from an aligned raster into a tiled, compressed GeoTIFF with a mask."""
+    with rasterio.open(src_path) as src:
+        img = src.read(window=tile.window, boundless=True, fill_value=0)
+        mask = src.read_masks(1, window=tile.window, boundless=True)
+        descriptions = [d or f"band {i}" for i, d in enumerate(src.descriptions, 1)]
+        colorinterp = list(src.colorinterp)
+        crs = src.crs
+        dtype = src.dtypes[0]
+    img[:, mask == 0] = 0
+    with create_geotiff(dst_path, width=int(tile.window.width), height=int(tile.window.height),
+                        count=img.shape[0], dtype=dtype, crs=crs, transform=tile.transform,
+                        band_descriptions=descriptions, tags=tags, internal_mask=True) as dst:
+        dst.colorinterp = colorinterp
+        dst.write(img)
+        dst.write_mask(np.where(mask > 0, 255, 0).astype(np.uint8))
+    return Path(dst_path)
+
+
+def index_records(selected: Sequence[tuple[TileSpec, Mapping[str, float]]], crs_name: str,
+                  tile_px: int) -> list[dict[str, Any]]:
+    """Rows of ``tiles/index.geojson`` (geometry added by the caller)."""
+    rows = []
+    for t, cov in selected:
+        minx, miny, maxx, maxy = t.bounds()
+        rows.append({
+            "tile_id": t.id, "row": t.row, "col": t.col, "tile_px": tile_px,
+            "minx": minx, "miny": miny, "maxx": maxx, "maxy": maxy, "crs": crs_name,
+            "flights": ",".join(f for f, v in cov.items() if v > 0),
+            "min_coverage": min(cov.values()) if cov else 0.0,
+            "partial": not all(v >= 1.0 for v in cov.values()),
+            "transform": ",".join(repr(v) for v in list(t.transform)[:6]),
+        })
+    return rows
