@@ -62,3 +62,9 @@ def test_geojson_is_rfc7946(tmp_path: Path) -> None:
     back = gpd.read_file(path).to_crs("EPSG:32756")
     # 9 decimals of a degree is ~0.1 mm: the round trip lands within a millimetre
     assert back.geometry.iloc[0].hausdorff_distance(cw) < 1e-3
+
+
+def test_geojson_collection_is_named_after_the_final_file(tmp_path: Path) -> None:
+    gdf = gpd.GeoDataFrame({"a": [1]}, geometry=[shapely.Point(151, -34)], crs="EPSG:4326")
+    doc = json.loads(write_geojson(gdf, tmp_path / "cattle.geojson").read_text())
+    assert doc["name"] == "cattle"

@@ -26,7 +26,8 @@ def write_geojson(gdf: gpd.GeoDataFrame, path: str | os.PathLike[str]) -> Path:
     out = gdf.to_crs("EPSG:4326") if gdf.crs is not None else gdf.set_crs("EPSG:4326")
     out = out.set_geometry(out.geometry.map(_orient_rfc7946))
     with atomic_path(path) as tmp:
-        out.to_file(tmp, driver="GeoJSON", engine="pyogrio", RFC7946="YES",
+        # name the collection after the final file, not the temporary one
+        out.to_file(tmp, driver="GeoJSON", engine="pyogrio", layer=Path(path).stem, RFC7946="YES",
                     WRITE_BBOX="YES", COORDINATE_PRECISION=9)
     return Path(path)
 
