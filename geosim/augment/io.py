@@ -1,0 +1,353 @@
+"""Files of the augmentation step: pairs.csv rows, tiles, YOLO labels and outputs.
+
+Inputs follow the run-folder contract (team brief): ``DIR/pairs.csv`` lists the
+pairs, ``DIR/tiles/<flight>/<tile_id>.tif`` and
+``DIR/degraded/<flight>/<tile_id>.tif`` hold the UAV and 0.5 m tiles, and
+``DIR/labels/yolo/<flight>/<tile_id>.txt`` / ``DIR/labels/yolo_0.5m/...`` their
+YOLO labels (``class cx cy w h`` normalised to the tile).
+
+Outputs. A geometric augmentation takes the pixels off the map grid, so such
+images are written *without* a geotransform or CRS; their metadata says so
+(``GEOSIM_ON_MAP_GRID=false``) and names the source tile, its georeference and
+the transform chain (for affine chains also the exact output-pixel →
+source-pixel matrix). Outputs changed only photometrically keep the source
+tile's georeference (``GEOSIM_ON_MAP_GRID=true``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.crs import CRS
+
+from geosim.augment.geometry import Boxes
+from geosim.augment.pipeline import AugImage
+from geosim.errors import InputFileError, LabelError, OutputError, RasterError
+from geosim.io.atomic import atomic_path, write_text
+from geosim.io.raster import (
+    BLOCK_PX,
+    alpha_band_index,
+    image_band_indexes,
+    open_raster,
+    read_valid_mask,
+    write_geotiff,
+)
+
+__all__ = [
+    "PAIRS_COLUMNS",
+    "Georef",
+    "PairRow",
+    "Tile",
+    "read_pairs",
+    "read_preview",
+    "read_tile",
+    "read_yolo",
+    "tile_and_label_paths",
+    "write_csv",
+    "write_image",
+    "write_yolo",
+]
+
+#: Columns of pairs.csv (team brief).
+PAIRS_COLUMNS = ("pair_id", "tile_id", "flight_a", "flight_b", "acquired_a", "acquired_b",
+                 "path_a", "path_b", "minx", "miny", "maxx", "maxy", "crs")
+
+#: Resolutions and where their tiles and labels live in a run folder.
+RESOLUTIONS = {"uav": ("tiles", "yolo"), "0.5m": ("degraded", "yolo_0.5m")}
+
+
+@dataclass(frozen=True)
+class PairRow:
+    """One row of pairs.csv (paths as written: relative to the run folder)."""
+
+    pair_id: str
+    tile_id: str
+    flight_a: str
+    flight_b: str
+    path_a: str
+    path_b: str
+    bounds: tuple[float, float, float, float]
+    crs: str
+    line: int
+
+
+@dataclass(frozen=True)
+class Georef:
+    """Where a tile sits on the map: CRS and pixel-edge geotransform."""
+
+    crs: CRS
+    transform: Affine
+
+    @property
+    def gsd_m(self) -> float:
+        """Pixel size along x, map units (metres in the projected site CRS)."""
+        return float(math.hypot(self.transform.a, self.transform.d))
+
+
+@dataclass(frozen=True)
+class Tile:
+    """A tile read for augmentation."""
+
+    path: Path
+    data: AugImage
+    georef: Georef | None
+    band_descriptions: tuple[str | None, ...]
+
+
+def read_pairs(pairs_csv: str | os.PathLike[str]) -> list[PairRow]:
+    """Read and check pairs.csv.
+
+    Raises
+    ------
+    InputFileError
+        The file does not exist.
+    LabelError
+        A column is missing or a row is malformed (message names the line).
+    """
+    p = Path(pairs_csv)
+    if not p.is_file():
+        raise InputFileError(f"pairs manifest {p} does not exist; give the pairs.csv of a run "
+                             "folder (geosim run SITE.toml --out DIR writes DIR/pairs.csv)")
+    with open(p, newline="") as f:
+        reader = csv.DictReader(f)
+        missing = [c for c in PAIRS_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise LabelError(f"pairs manifest {p}: missing column(s) {', '.join(missing)}; "
+                             f"expected {','.join(PAIRS_COLUMNS)}")
+        rows = []
+        for line, rec in enumerate(reader, start=2):
+            try:
+                bounds = tuple(float(rec[k]) for k in ("minx", "miny", "maxx", "maxy"))
+            except (TypeError, ValueError):
+                raise LabelError(f"pairs manifest {p}, line {line}: bounds are not numbers; "
+                                 "regenerate pairs.csv") from None
+            for k in ("pair_id", "tile_id", "flight_a", "flight_b", "path_a", "path_b"):
+                if not rec.get(k):
+                    raise LabelError(f"pairs manifest {p}, line {line}: empty {k}; "
+                                     "regenerate pairs.csv")
+            rows.append(PairRow(rec["pair_id"], rec["tile_id"], rec["flight_a"], rec["flight_b"],
+                                rec["path_a"], rec["path_b"], bounds,  # type: ignore[arg-type]
+                                rec["crs"], line))
+    return rows
+
+
+def tile_and_label_paths(run_dir: Path, row: PairRow, resolution: str
+                         ) -> tuple[Path, Path, Path, Path]:
+    """Image and label paths of both images of a pair at ``resolution`` (``uav``/``0.5m``).
+
+    UAV images come from the pairs.csv paths; 0.5 m ones from
+    ``degraded/<flight>/<tile_id>.tif``.
+    """
+    if resolution not in RESOLUTIONS:
+        raise ValueError(f"resolution must be one of {', '.join(RESOLUTIONS)}")
+    tiles, labels = RESOLUTIONS[resolution]
+    if resolution == "uav":
+        img_a, img_b = run_dir / row.path_a, run_dir / row.path_b
+    else:
+        img_a = run_dir / tiles / row.flight_a / f"{row.tile_id}.tif"
+        img_b = run_dir / tiles / row.flight_b / f"{row.tile_id}.tif"
+    lab = run_dir / "labels" / labels
+    return (img_a, img_b, lab / row.flight_a / f"{row.tile_id}.txt",
+            lab / row.flight_b / f"{row.tile_id}.txt")
+
+
+def read_tile(path: Path, *, what: str) -> Tile:
+    """Read a tile's image bands and valid mask (a tile is small enough to hold whole).
+
+    Float64 rasters are read as float32; other unsupported dtypes are refused.
+    """
+    with open_raster(path, what=what, require_crs=False) as ds:
+        bands = image_band_indexes(ds)
+        dtype = np.dtype(ds.dtypes[bands[0] - 1])
+        if dtype == np.float64:
+            dtype = np.dtype(np.float32)
+        if dtype not in (np.uint8, np.uint16, np.int16, np.float32):
+            raise RasterError(f"{what}: {path} has data type {dtype}; augmentation supports "
+                              "uint8, uint16, int16 and float32 images; convert it first")
+        image = ds.read(bands, out_dtype=dtype)
+        mask = read_valid_mask(ds)
+        georef = None
+        if ds.crs is not None and ds.transform != Affine.identity():
+            georef = Georef(ds.crs, ds.transform)
+        desc = tuple(ds.descriptions[i - 1] for i in bands)
+    return Tile(path, AugImage(image, mask), georef, desc)
+
+
+def read_yolo(path: Path, shape: tuple[int, int]) -> Boxes | None:
+    """Read YOLO boxes (``class cx cy w h``, normalised) for an image of ``shape``.
+
+    Returns ``None`` when the file does not exist (no labels for that tile).
+
+    Raises
+    ------
+    LabelError
+        A malformed line (the message names the file and line).
+    """
+    if not path.is_file():
+        return None
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        try:
+            if len(parts) != 5:
+                raise ValueError(f"{len(parts)} fields")
+            cls = int(parts[0])
+            vals = [float(v) for v in parts[1:]]
+            if cls < 0 or not all(math.isfinite(v) for v in vals):
+                raise ValueError("negative class or non-finite value")
+            if vals[2] <= 0 or vals[3] <= 0:
+                raise ValueError("width and height must be > 0")
+        except ValueError as exc:
+            raise LabelError(f"YOLO label file {path}, line {n}: {line.strip()!r} is not "
+                             f"'class cx cy w h' ({exc}); fix or delete the line") from None
+        rows.append([cls, *vals])
+    return Boxes.from_yolo(np.array(rows).reshape(-1, 5), shape)
+
+
+def write_yolo(path: Path, boxes: Boxes, shape: tuple[int, int]) -> Path:
+    """Write boxes as YOLO ``class cx cy w h`` normalised to ``shape``, atomically.
+
+    An image without boxes gets an empty file (YOLO's "background image").
+    """
+    lines = [f"{int(r[0])} {r[1]:.6f} {r[2]:.6f} {r[3]:.6f} {r[4]:.6f}\n"
+             for r in boxes.to_yolo(shape)]
+    return write_text(path, "".join(lines))
+
+
+def write_image(path: Path, img: AugImage, *, georef: Georef | None,
+                tags: Mapping[str, str], band_descriptions: Sequence[str | None] = ()
+                ) -> Path:
+    """Write an augmented image as GeoTIFF (``.tif``) or PNG (``.png``), atomically.
+
+    Parameters
+    ----------
+    path
+        Output path; the suffix picks the format.
+    img
+        Image and valid mask (written as an internal mask band, or PNG alpha).
+    georef
+        Georeference to write, or ``None`` to write none (pixels off the map grid).
+    tags
+        Metadata tags (GeoTIFF only; PNG outputs are described by the run's CSVs
+        and per-pair JSON).
+    band_descriptions
+        Band names (GeoTIFF).
+    """
+    if path.suffix.lower() == ".png":
+        return _write_png(path, img)
+    desc = [d or f"band {i}" for i, d in enumerate(band_descriptions, start=1)] or None
+    if georef is not None:
+        return write_geotiff(path, img.image, transform=georef.transform, crs=georef.crs,
+                             mask=img.mask, band_descriptions=desc, tags=dict(tags))
+    arr = img.image
+    count, rows, cols = arr.shape
+    tiled = rows >= BLOCK_PX and cols >= BLOCK_PX
+    profile: dict[str, Any] = {
+        "driver": "GTiff", "width": cols, "height": rows, "count": count,
+        "dtype": arr.dtype.name, "compress": "deflate", "interleave": "pixel",
+        "predictor": 3 if arr.dtype.kind == "f" else 2, "tiled": tiled, "BIGTIFF": "IF_SAFER",
+    }
+    if tiled:
+        profile.update(blockxsize=BLOCK_PX, blockysize=BLOCK_PX)
+    with atomic_path(path) as tmp, rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+        with _quiet_georef(), rasterio.open(tmp, "w", **profile) as dst:
+            if desc:
+                for i, d in enumerate(desc, start=1):
+                    dst.set_band_description(i, d)
+            dst.update_tags(**dict(tags))
+            dst.write(arr)
+            dst.write_mask(img.mask.astype(np.uint8) * 255)
+    return path
+
+
+@contextlib.contextmanager
+def _quiet_georef():  # type: ignore[no-untyped-def]
+    """Silence rasterio's NotGeoreferencedWarning: writing no georeference is the intent."""
+    import warnings
+
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        yield
+
+
+def _write_png(path: Path, img: AugImage) -> Path:
+    arr = img.image
+    if arr.dtype not in (np.uint8, np.uint16) or arr.shape[0] not in (1, 3):
+        raise OutputError(f"{path}: PNG holds 1 or 3 bands of uint8/uint16, not "
+                          f"{arr.shape[0]} bands of {arr.dtype}; write GeoTIFF (--format tif)")
+    rgb = np.repeat(arr, 3, axis=0) if arr.shape[0] == 1 else arr
+    alpha = (img.mask * np.iinfo(arr.dtype).max).astype(arr.dtype)[np.newaxis]
+    bgra = np.ascontiguousarray(np.moveaxis(np.concatenate([rgb[::-1], alpha]), 0, -1))
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), bgra):
+            raise OutputError(f"{path}: PNG encoding failed; check the folder is writable")
+    return path
+
+
+def write_csv(path: Path, columns: Sequence[str], rows: Sequence[Mapping[str, Any]]) -> Path:
+    """Write rows (dicts) as CSV with the given columns, atomically; missing cells empty."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(columns), extrasaction="raise",
+                               lineterminator="\n")
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: _cell(v) for k, v in r.items()})
+    return path
+
+
+def _cell(v: Any) -> Any:
+    if isinstance(v, float):
+        return repr(v)
+    if isinstance(v, list | dict):
+        return json.dumps(v)
+    return v
+
+
+def read_preview(path: Path, *, max_side_px: int = 1500) -> tuple[np.ndarray, np.ndarray, float]:
+    """Read any GDAL-readable image (GeoTIFF, PNG, JPEG), decimated for a figure.
+
+    Parameters
+    ----------
+    path
+        Image file (no georeference needed).
+    max_side_px
+        Longest side of the returned arrays, pixels (averaged decimation).
+
+    Returns
+    -------
+    image, mask, factor
+        ``(bands, rows, cols)`` image bands, ``(rows, cols)`` bool valid mask, and
+        the decimation factor (source pixels per returned pixel).
+    """
+    from rasterio.enums import Resampling
+
+    with _quiet_georef(), open_raster(path, what="image to warp", require_crs=False) as ds:
+        factor = max(1.0, max(ds.width, ds.height) / max_side_px)
+        shape = (max(1, round(ds.height / factor)), max(1, round(ds.width / factor)))
+        bands = image_band_indexes(ds)[:3]
+        image = ds.read(bands, out_shape=(len(bands), *shape), resampling=Resampling.average)
+        if image.dtype not in (np.uint8, np.uint16, np.int16, np.float32):
+            image = image.astype(np.float32)
+        alpha = alpha_band_index(ds)
+        if alpha is not None:
+            mask = ds.read(alpha, out_shape=shape, resampling=Resampling.nearest) > 0
+        else:
+            mask = ds.dataset_mask(out_shape=shape, resampling=Resampling.nearest) > 0
+    return image, mask, factor

@@ -1,0 +1,233 @@
+"""The augmentation step over a run folder: pairs.csv in, augmented training pairs out.
+
+Output folder layout (``OUT``)::
+
+    OUT/images/<aug_id>_a.tif, <aug_id>_b.tif      augmented images (or .png)
+    OUT/labels/<aug_id>_a.txt, <aug_id>_b.txt      YOLO labels (same stems: the
+                                                    images/ ↔ labels/ layout YOLO trainers expect)
+    OUT/meta/<aug_id>.json                          records, transform chains, sources
+    OUT/augmented_pairs.csv                         one row per augmented pair (manifest)
+    OUT/parameters.csv                              every drawn parameter, one row per pair
+    OUT/classes.txt, OUT/augment.json               class names; run summary and configuration
+
+``aug_id`` is ``<pair_id>_k<index>``. Output ``k`` of a pair uses the generator
+``SeedSequence(seed, spawn_key=(crc32(pair_id), k))``: it does not depend on
+which other pairs are processed or in which order, and the seed in
+``augment.json`` regenerates every output exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import time
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from geosim.augment.geometry import Boxes
+from geosim.augment.io import (
+    PairRow,
+    Tile,
+    read_pairs,
+    read_tile,
+    read_yolo,
+    tile_and_label_paths,
+    write_csv,
+    write_image,
+    write_yolo,
+)
+from geosim.augment.pipeline import AugImage, AugmentResult, Pipeline, flatten_records
+from geosim.errors import OutputError, RasterError
+from geosim.io.atomic import write_json, write_text
+from geosim.io.raster import provenance_tags
+
+__all__ = ["MANIFEST_COLUMNS", "output_rng", "run_augment"]
+
+MANIFEST_COLUMNS = ("aug_id", "pair_id", "tile_id", "flight_a", "flight_b", "index",
+                    "path_a", "path_b", "labels_a", "labels_b", "meta", "boxes_a", "boxes_b",
+                    "dropped_a", "dropped_b", "on_map_grid_a", "on_map_grid_b",
+                    "source_a", "source_b")
+
+OFF_GRID_NOTE = ("geometric augmentation applied: these pixels are no longer on the map grid, "
+                 "so no geotransform or CRS is written; GEOSIM_SOURCE_TILE, "
+                 "GEOSIM_SOURCE_TRANSFORM and GEOSIM_TRANSFORM_CHAIN say where they came from")
+
+
+def output_rng(seed: int, pair_id: str, index: int) -> np.random.Generator:
+    """The generator of output ``index`` of pair ``pair_id`` for a run ``seed``."""
+    key = zlib.crc32(pair_id.encode("utf-8"))
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(key, index)))
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name)
+
+
+def _load(run_dir: Path, row: PairRow, resolution: str) -> tuple[Tile, Tile, list[bool]]:
+    img_a, img_b, lab_a, lab_b = tile_and_label_paths(run_dir, row, resolution)
+    tiles = []
+    found = []
+    for img, lab, flight in ((img_a, lab_a, row.flight_a), (img_b, lab_b, row.flight_b)):
+        tile = read_tile(img, what=f"pair {row.pair_id} flight {flight} tile")
+        boxes = read_yolo(lab, tile.data.shape)
+        found.append(boxes is not None)
+        data = AugImage(tile.data.image, tile.data.mask, boxes or Boxes.empty())
+        tiles.append(Tile(tile.path, data, tile.georef, tile.band_descriptions))
+    a, b = tiles
+    if a.data.shape != b.data.shape:
+        raise RasterError(f"pair {row.pair_id}: {a.path} is {a.data.shape} px but {b.path} is "
+                          f"{b.data.shape} px; the tiles of a pair must cover the same pixels "
+                          "(re-run the tiles step)")
+    return a, b, found
+
+
+def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int,
+                out_dir: str | os.PathLike[str], seed: int | None = None,
+                resolution: str = "uav", fmt: str = "tif", overwrite: bool = False,
+                ) -> dict[str, Any]:
+    """Augment every pair of a run folder ``n`` times.
+
+    Parameters
+    ----------
+    pairs_csv
+        ``DIR/pairs.csv`` of a run folder; tiles and labels are found beside it.
+    pipeline
+        The augmentation pipeline.
+    n
+        Augmented outputs per pair.
+    out_dir
+        Output folder (layout in the module docstring).
+    seed
+        Run seed; ``None`` draws one from the OS and records it in ``augment.json``.
+    resolution
+        ``"uav"`` (tiles/, labels/yolo/) or ``"0.5m"`` (degraded/, labels/yolo_0.5m/).
+    fmt
+        ``"tif"`` (GeoTIFF, default) or ``"png"`` (8/16-bit RGB with the mask as alpha).
+    overwrite
+        Replace the outputs of an earlier run in ``out_dir``.
+
+    Returns
+    -------
+    dict
+        Summary (counts, timings, paths), also written to ``augment.json``.
+    """
+    if n < 1:
+        raise ValueError("n must be >= 1")
+    if fmt not in ("tif", "png"):
+        raise ValueError("fmt must be 'tif' or 'png'")
+    pairs_csv = Path(pairs_csv)
+    run_dir = pairs_csv.parent
+    out = Path(out_dir)
+    manifest_path = out / "augmented_pairs.csv"
+    if manifest_path.exists() and not overwrite:
+        raise OutputError(f"{out} already holds augmented pairs ({manifest_path.name}); choose "
+                          "another --out folder or pass --overwrite")
+    if overwrite:
+        for sub in ("images", "labels", "meta"):
+            shutil.rmtree(out / sub, ignore_errors=True)
+    rows = read_pairs(pairs_csv)
+    if seed is None:
+        seed = int(np.random.SeedSequence().entropy % (2**63))
+    manifest: list[dict[str, Any]] = []
+    params_rows: list[dict[str, Any]] = []
+    counts = {"boxes_in": 0, "boxes_out": 0, "boxes_dropped": 0, "missing_label_files": 0,
+              "off_grid_images": 0}
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(rows) * n, desc="augment", unit="pair", disable=None)
+    try:
+        for row in rows:
+            tile_a, tile_b, found = _load(run_dir, row, resolution)
+            counts["missing_label_files"] += found.count(False)
+            gsd = tile_a.georef.gsd_m if tile_a.georef is not None else None
+            scale = pipeline.length_scale(gsd)
+            for k in range(n):
+                aug_id = f"{_safe(row.pair_id)}_k{k:03d}"
+                res = pipeline.apply(tile_a.data, tile_b.data, output_rng(seed, row.pair_id, k),
+                                     length_scale=scale)
+                mrow = _write_outputs(out, aug_id, row, k, res, (tile_a, tile_b), run_dir,
+                                      fmt=fmt, seed=seed, pipeline=pipeline, length_scale=scale)
+                manifest.append(mrow)
+                params_rows.append({"aug_id": aug_id, "pair_id": row.pair_id, "index": k,
+                                    "seed": seed, "length_scale": scale,
+                                    **flatten_records(res.records)})
+                counts["boxes_in"] += len(tile_a.data.boxes) + len(tile_b.data.boxes)
+                counts["boxes_out"] += len(res.a.boxes) + len(res.b.boxes)
+                counts["boxes_dropped"] += res.dropped_a + res.dropped_b
+                counts["off_grid_images"] += res.on_map_grid.count(False)
+                bar.update(1)
+    finally:
+        bar.close()
+    seconds = time.perf_counter() - t0
+    columns = ["aug_id", "pair_id", "index", "seed", "length_scale",
+               *pipeline.record_columns()]
+    params_path = write_csv(out / "parameters.csv", columns, params_rows)
+    classes_src = run_dir / "labels" / "classes.txt"
+    classes = classes_src.read_text() if classes_src.is_file() else "cattle\n"
+    write_text(out / "classes.txt", classes)
+    summary: dict[str, Any] = {
+        "pairs": len(rows), "outputs_per_pair": n, "augmented_pairs": len(manifest),
+        "seed": seed, "resolution": resolution, "format": fmt, **counts,
+        "seconds": round(seconds, 3),
+        "pairs_per_second": round(len(manifest) / seconds, 3) if seconds > 0 else None,
+        "out_dir": str(out), "manifest": str(manifest_path), "parameters": str(params_path),
+    }
+    write_json(out / "augment.json", {**summary, "pairs_csv": str(pairs_csv),
+                                      "config": pipeline.to_dict()})
+    # The manifest is written last: its presence marks a complete run.
+    write_csv(manifest_path, MANIFEST_COLUMNS, manifest)
+    return summary
+
+
+def _write_outputs(out: Path, aug_id: str, row: PairRow, k: int, res: AugmentResult,
+                   tiles: tuple[Tile, Tile], run_dir: Path, *, fmt: str, seed: int,
+                   pipeline: Pipeline, length_scale: float) -> dict[str, Any]:
+    mrow: dict[str, Any] = {"aug_id": aug_id, "pair_id": row.pair_id, "tile_id": row.tile_id,
+                            "flight_a": row.flight_a, "flight_b": row.flight_b, "index": k}
+    meta: dict[str, Any] = {"aug_id": aug_id, "pair_id": row.pair_id, "tile_id": row.tile_id,
+                            "index": k, "seed": seed, "length_scale": length_scale,
+                            "records": res.records, "images": {}}
+    for side, img, chain, tile, dropped, on_grid, flight in (
+            ("a", res.a, res.chain_a, tiles[0], res.dropped_a, res.on_map_grid[0], row.flight_a),
+            ("b", res.b, res.chain_b, tiles[1], res.dropped_b, res.on_map_grid[1], row.flight_b)):
+        rel_img = Path("images") / f"{aug_id}_{side}.{fmt}"
+        rel_lab = Path("labels") / f"{aug_id}_{side}.txt"
+        source = os.path.relpath(tile.path, run_dir)
+        p2s = AugmentResult.pixel_to_source(chain)
+        geo = tile.georef
+        info: dict[str, Any] = {
+            "flight": flight, "source_tile": source, "on_map_grid": on_grid,
+            "source_crs": geo.crs.to_string() if geo else None,
+            "source_transform": list(geo.transform)[:6] if geo else None,
+            "transform_chain": chain,
+            "pixel_to_source_pixel": p2s[:2].tolist() if p2s is not None else None,
+            "boxes": len(img.boxes), "dropped_boxes": dropped,
+        }
+        tags = provenance_tags("augment", {"aug_id": aug_id, "image": side, "seed": seed,
+                                           "records": res.records}, [source])
+        tags.update({
+            "GEOSIM_ON_MAP_GRID": "true" if on_grid else "false",
+            "GEOSIM_SOURCE_TILE": source,
+            "GEOSIM_SOURCE_CRS": info["source_crs"] or "",
+            "GEOSIM_SOURCE_TRANSFORM": json.dumps(info["source_transform"]),
+            "GEOSIM_TRANSFORM_CHAIN": json.dumps(chain),
+            "GEOSIM_PIXEL_TO_SOURCE_PIXEL": json.dumps(info["pixel_to_source_pixel"]),
+        })
+        if not on_grid:
+            tags["GEOSIM_NOTE"] = OFF_GRID_NOTE
+        write_image(out / rel_img, img, georef=geo if on_grid else None, tags=tags,
+                    band_descriptions=tile.band_descriptions)
+        write_yolo(out / rel_lab, img.boxes, img.shape)
+        meta["images"][side] = info
+        mrow.update({f"path_{side}": rel_img.as_posix(), f"labels_{side}": rel_lab.as_posix(),
+                     f"boxes_{side}": len(img.boxes), f"dropped_{side}": dropped,
+                     f"on_map_grid_{side}": on_grid, f"source_{side}": source})
+    rel_meta = Path("meta") / f"{aug_id}.json"
+    write_json(out / rel_meta, meta)
+    mrow["meta"] = rel_meta.as_posix()
+    return mrow
