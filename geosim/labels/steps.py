@@ -1,0 +1,399 @@
+"""The labels pipeline step: ``run_labels(site, out_dir) -> dict``.
+
+Reads every labelled flight's labels (in the flight's stated frame), moves them
+into the aligned frame with the alignment step's correction, merges duplicates,
+and writes ``out_dir/labels/``::
+
+    cattle.geojson            RFC 7946 (lon/lat), one box polygon per cow
+    cattle.gpkg               site CRS; layers ``cattle`` (boxes) and ``cattle_centres`` (points)
+    classes.txt               ``cattle`` (class 0)
+    yolo/<flight>/<tile>.txt      boxes on each UAV tile (empty file: no cattle there)
+    yolo_0.5m/<flight>/<tile>.txt boxes on each 0.5 m tile (same ground, phi x the pixel)
+
+Every feature carries ``cattle_id``, ``flight``, ``acquired``, ``class_name``,
+``source_file``, ``source_line``, ``source_kind``, ``width_m``, ``height_m``,
+``centre_x``/``centre_y`` (site CRS, m), ``centre_lon``/``centre_lat``
+(WGS 84), ``below_sat_pixel`` (a side shorter than one satellite pixel),
+``n_merged``/``merged_from`` (duplicates merged into it) and ``tile_ids``
+(UAV tiles where its box was written). YOLO files are written only for flights
+that have labels: an empty file claims "no cattle here", which an unlabelled
+flight cannot.
+
+All labels are read and validated before anything is written, and the whole
+folder is built under a temporary name and swapped in by renames, so a bad
+label file or a crash leaves the previous ``labels/`` (or none) untouched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import geopandas as gpd
+import numpy as np
+import rasterio
+import shapely
+from affine import Affine
+from pyproj import CRS, Transformer
+from tqdm import tqdm
+
+from geosim.config import SiteConfig
+from geosim.errors import AlignmentError, InputFileError
+from geosim.io.vector import write_geojson, write_gpkg
+from geosim.labels.dedupe import DEFAULT_IOU, dedupe_labels
+from geosim.labels.georef import affine_linear_scale, apply_affine, transform_geometries
+from geosim.labels.sources import read_site_labels
+from geosim.labels.tiles import sat_tile_geometry, tile_boxes
+from geosim.labels.yolo import CLASS_NAMES, format_yolo
+
+TILE_ID = re.compile(r"^r\d{3,}_c\d{3,}$")
+
+
+@dataclass(frozen=True)
+class TileGeoref:
+    """A UAV tile's id and georeference (read from its GeoTIFF header)."""
+
+    tile_id: str
+    transform: Affine
+    width_px: int
+    height_px: int
+    crs: CRS
+
+    @property
+    def outline(self) -> shapely.Polygon:
+        """Tile outline in map coordinates."""
+        w, h = self.width_px, self.height_px
+        return shapely.Polygon(apply_affine(self.transform, np.array(
+            [[0, 0], [w, 0], [w, h], [0, h]], dtype=float)))
+
+
+# ----------------------------------------------------------------------- inputs
+
+
+def read_grid(out_dir: Path) -> Any | None:
+    """The shared grid (``grid/grid.json``) as a ``SiteGrid``, or None if absent."""
+    path = out_dir / "grid" / "grid.json"
+    if not path.is_file():
+        return None
+    from geosim.prepare.grid import SiteGrid
+
+    return SiteGrid.from_dict(json.loads(path.read_text()))
+
+
+def find_tiles(out_dir: Path, flight_ids: list[str]) -> dict[str, list[TileGeoref]]:
+    """UAV tiles of each flight, from ``tiles/<flight>/<tile_id>.tif`` headers.
+
+    Raises
+    ------
+    InputFileError
+        If ``out_dir/tiles`` does not exist (the tile step has not run).
+    """
+    tiles_dir = out_dir / "tiles"
+    if not tiles_dir.is_dir():
+        raise InputFileError(f"{tiles_dir} not found: the labels step writes YOLO files for "
+                             "the tiles; run 'geosim tile' (or 'geosim run') first")
+    found: dict[str, list[TileGeoref]] = {}
+    for fid in flight_ids:
+        tiles = []
+        for path in sorted((tiles_dir / fid).glob("*.tif")):
+            if not TILE_ID.match(path.stem):
+                continue
+            with rasterio.open(path) as ds:
+                tiles.append(TileGeoref(path.stem, ds.transform, ds.width, ds.height,
+                                        CRS.from_user_input(ds.crs.to_wkt())))
+        found[fid] = tiles
+    return found
+
+
+def load_corrections(out_dir: Path, flight_ids: list[str], grid: Any,
+                     ) -> dict[str, Affine]:
+    """Per-flight affine from stated to aligned map coordinates (``alignment.json``).
+
+    Uses :func:`geosim.prepare.alignment.correction_affine` on each flight's entry.
+
+    Raises
+    ------
+    AlignmentError
+        If ``alignment.json`` is missing or has no entry for a labelled flight.
+    """
+    path = out_dir / "alignment.json"
+    if not path.is_file():
+        raise AlignmentError(f"{path} not found: labels are moved into the aligned frame with "
+                             "the alignment correction; run 'geosim align' first")
+    from geosim.prepare.alignment import correction_affine
+
+    doc = json.loads(path.read_text())
+    entries = doc.get("flights", doc) if isinstance(doc, dict) else {}
+    out: dict[str, Affine] = {}
+    for fid in flight_ids:
+        entry = entries.get(fid) if isinstance(entries, dict) else None
+        if not isinstance(entry, dict):
+            raise AlignmentError(f"{path}: no entry for flight {fid}; re-run 'geosim align'")
+        out[fid] = correction_affine(entry, grid)
+    return out
+
+
+# --------------------------------------------------------------------- building
+
+
+def apply_corrections(labels: gpd.GeoDataFrame, corrections: Mapping[str, Affine],
+                      ) -> gpd.GeoDataFrame:
+    """Move each flight's label geometries by its correction affine (site CRS, m).
+
+    Box sides are scaled by the affine's linear scale (``sqrt(|det|)``); the
+    correction is a similarity transform (rotation, scale, shift).
+    """
+    out = labels.copy()
+    geoms = np.asarray(out.geometry.values, dtype=object).copy()
+    width = out["width_m"].to_numpy(dtype=float).copy()
+    height = out["height_m"].to_numpy(dtype=float).copy()
+    for fid, pos in out.groupby("flight", sort=False).indices.items():
+        if fid not in corrections:
+            raise AlignmentError(f"no alignment correction for flight {fid}; re-run "
+                                 "'geosim align'")
+        a = corrections[fid]
+        geoms[pos] = transform_geometries(geoms[pos], a)
+        s = affine_linear_scale(a)
+        width[pos] *= s
+        height[pos] *= s
+    out = out.set_geometry(gpd.GeoSeries(list(geoms), crs=out.crs, index=out.index))
+    out["width_m"] = width
+    out["height_m"] = height
+    return out
+
+
+def add_feature_attributes(cattle: gpd.GeoDataFrame, *, sat_gsd_m: float,
+                           ) -> gpd.GeoDataFrame:
+    """Add ``cattle_id``, centre coordinates (site CRS and WGS 84) and ``below_sat_pixel``.
+
+    Sizes and site-CRS centres are rounded to 1 µm and lon/lat to 1e-9 degree
+    (0.1 mm): attribute values for people, not geometry (which keeps float64).
+    """
+    out = cattle.copy()
+    ids: list[str] = []
+    counter: dict[str, int] = {}
+    for f in out["flight"]:
+        counter[f] = counter.get(f, 0) + 1
+        ids.append(f"{f}-{counter[f]:04d}")
+    out.insert(0, "cattle_id", ids)
+    centres = shapely.get_coordinates(shapely.centroid(np.asarray(out.geometry.values)))
+    centres = centres.reshape(-1, 2)
+    out["width_m"] = np.round(out["width_m"].to_numpy(dtype=float), 6)
+    out["height_m"] = np.round(out["height_m"].to_numpy(dtype=float), 6)
+    out["centre_x"] = np.round(centres[:, 0], 6)
+    out["centre_y"] = np.round(centres[:, 1], 6)
+    if len(out):
+        lon, lat = Transformer.from_crs(out.crs, "EPSG:4326", always_xy=True).transform(
+            centres[:, 0], centres[:, 1])
+    else:
+        lon = lat = np.zeros(0)
+    out["centre_lon"] = np.round(lon, 9)
+    out["centre_lat"] = np.round(lat, 9)
+    out["below_sat_pixel"] = (out["width_m"] < sat_gsd_m) | (out["height_m"] < sat_gsd_m)
+    return out
+
+
+@dataclass
+class TileLabels:
+    """YOLO texts of one flight's tiles and what went into them."""
+
+    uav: dict[str, str]
+    sat: dict[str, str]
+    tile_ids_per_feature: dict[int, list[str]]
+    stats: dict[str, int]
+
+
+def build_tile_labels(cattle: gpd.GeoDataFrame, tiles: list[TileGeoref], *, phi: int,
+                      min_visible_fraction: float,
+                      progress: Callable[[], None] | None = None) -> TileLabels:
+    """YOLO texts for one flight's UAV tiles and their 0.5 m counterparts.
+
+    Parameters
+    ----------
+    cattle
+        This flight's cattle polygons in the aligned frame, site CRS.
+    tiles
+        The flight's UAV tiles.
+    phi
+        Satellite pixel size in UAV pixels.
+    min_visible_fraction
+        Drop a box whose visible area on a tile is below this fraction.
+    """
+    geoms = np.asarray(cattle.geometry.values, dtype=object)
+    class_ids = np.array([CLASS_NAMES.index(c) for c in cattle["class_name"]], dtype=np.int64)
+    tree = shapely.STRtree(geoms) if geoms.size else None
+    uav: dict[str, str] = {}
+    sat: dict[str, str] = {}
+    per_feature: dict[int, list[str]] = {}
+    stats = {"tiles": 0, "empty_tiles": 0, "boxes_uav": 0, "boxes_0.5m": 0, "clipped": 0,
+             "dropped_below_visible_fraction": 0}
+    for tile in tiles:
+        cand = (np.sort(tree.query(tile.outline, predicate="intersects")) if tree is not None
+                else np.zeros(0, dtype=np.int64))
+        hit = tile_boxes(geoms[cand], tile.transform, tile.width_px, tile.height_px,
+                         min_visible_fraction=min_visible_fraction)
+        sat_transform, sat_w, sat_h = sat_tile_geometry(tile.transform, tile.width_px,
+                                                        tile.height_px, phi)
+        hit_sat = tile_boxes(geoms[cand], sat_transform, sat_w, sat_h,
+                             min_visible_fraction=min_visible_fraction)
+        uav[tile.tile_id] = format_yolo(class_ids[cand[hit.index]], hit.boxes)
+        sat[tile.tile_id] = format_yolo(class_ids[cand[hit_sat.index]], hit_sat.boxes)
+        for k in cand[hit.index]:
+            per_feature.setdefault(int(k), []).append(tile.tile_id)
+        stats["tiles"] += 1
+        stats["empty_tiles"] += int(len(hit) == 0)
+        stats["boxes_uav"] += len(hit)
+        stats["boxes_0.5m"] += len(hit_sat)
+        stats["clipped"] += int(hit.clipped.sum())
+        stats["dropped_below_visible_fraction"] += int(hit.dropped.size)
+        if progress is not None:
+            progress()
+    return TileLabels(uav, sat, per_feature, stats)
+
+
+# ---------------------------------------------------------------------- writing
+
+
+def _swap_in(stage: Path, final: Path) -> None:
+    """Replace ``final`` (a folder) by ``stage`` with two renames."""
+    old = None
+    if final.exists():
+        old = final.with_name(f".{final.name}.old-{os.getpid()}")
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(final, old)
+    os.replace(stage, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _staging(final: Path):
+    final.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-", dir=final.parent))
+    stage.chmod(0o755)  # mkdtemp makes it private; the outputs are for everyone to read
+    try:
+        yield stage
+        _swap_in(stage, final)
+    finally:
+        if stage.exists():
+            shutil.rmtree(stage, ignore_errors=True)
+
+
+def _centres_layer(cattle: gpd.GeoDataFrame) -> gpd.GeoDataFrame:
+    points = shapely.points(cattle[["centre_x", "centre_y"]].to_numpy())
+    return gpd.GeoDataFrame(cattle.drop(columns="geometry"), geometry=points, crs=cattle.crs)
+
+
+def run_labels(site: SiteConfig, out_dir: str | os.PathLike[str], *,
+               corrections: Mapping[str, Affine] | None = None,
+               iou_threshold: float = DEFAULT_IOU) -> dict[str, Any]:
+    """Fill ``out_dir/labels/`` from the site's labels (see the module docstring).
+
+    Parameters
+    ----------
+    site
+        The site; flights with ``labels`` are processed.
+    out_dir
+        The run folder; needs ``grid/grid.json``, ``tiles/`` and ``alignment.json``.
+    corrections
+        Stated -> aligned affine per flight (site CRS, metres); default: from
+        ``alignment.json`` through the alignment step's ``correction_affine``.
+    iou_threshold
+        IoU at which two labels of one flight are the same cow.
+
+    Returns
+    -------
+    dict
+        JSON-able summary: outputs written, per-flight counts, and ``text``.
+    """
+    out = Path(out_dir)
+    params = site.parameters
+    labelled = [f.id for f in site.flights if f.labels is not None]
+    if not labelled:
+        return {"cattle": 0, "flights": {}, "outputs": {},
+                "text": "no flight has labels in the site file; nothing written"}
+    grid = read_grid(out)
+    tiles = find_tiles(out, labelled)
+    crs = _site_crs(grid, tiles, out)
+    base_dir = site.path.parent if site.path is not None else None
+
+    # Read and validate everything before writing anything.
+    stated = read_site_labels([site.flight(f) for f in labelled], crs, base_dir=base_dir)
+    if corrections is None:
+        corrections = load_corrections(out, labelled, grid)
+    aligned = apply_corrections(stated, corrections)
+    cattle = dedupe_labels(aligned, iou_threshold=iou_threshold)
+    cattle = add_feature_attributes(cattle, sat_gsd_m=params.sat_gsd_m)
+
+    per_flight: dict[str, dict[str, Any]] = {}
+    texts: dict[Path, str] = {Path("classes.txt"): "".join(f"{c}\n" for c in CLASS_NAMES)}
+    tile_ids = [""] * len(cattle)
+    n_tiles = sum(len(tiles[f]) for f in labelled)
+    with tqdm(total=n_tiles, desc="labels per tile", unit="tile", disable=None) as bar:
+        for fid in labelled:
+            pos = np.flatnonzero((cattle["flight"] == fid).to_numpy())
+            built = build_tile_labels(cattle.iloc[pos], tiles[fid], phi=params.phi,
+                                      min_visible_fraction=params.min_visible_fraction,
+                                      progress=bar.update if n_tiles else None)
+            for tid, text in built.uav.items():
+                texts[Path("yolo") / fid / f"{tid}.txt"] = text
+            for tid, text in built.sat.items():
+                texts[Path("yolo_0.5m") / fid / f"{tid}.txt"] = text
+            for k, ids in built.tile_ids_per_feature.items():
+                tile_ids[pos[k]] = ";".join(ids)
+            n_read = int((stated["flight"] == fid).sum())
+            per_flight[fid] = {
+                "labels_read": n_read,
+                "cattle": int(pos.size),
+                "duplicates_merged": n_read - int(pos.size),
+                "below_sat_pixel": int(cattle["below_sat_pixel"].iloc[pos].sum()),
+                **built.stats,
+            }
+    cattle["tile_ids"] = tile_ids
+
+    final = out / "labels"
+    with _staging(final) as stage:
+        for rel, text in texts.items():
+            (stage / rel).parent.mkdir(parents=True, exist_ok=True)
+            (stage / rel).write_text(text)
+        write_geojson(cattle, stage / "cattle.geojson")
+        write_gpkg(cattle, stage / "cattle.gpkg", layer="cattle")
+        _centres_layer(cattle).to_file(stage / "cattle.gpkg", layer="cattle_centres",
+                                       driver="GPKG", engine="pyogrio")
+
+    total = len(cattle)
+    n_yolo = sum(1 for rel in texts if rel.parts[0] == "yolo")
+    return {
+        "outputs": {
+            "geojson": str(final / "cattle.geojson"),
+            "gpkg": str(final / "cattle.gpkg"),
+            "classes": str(final / "classes.txt"),
+            "yolo_dir": str(final / "yolo"),
+            "yolo_0.5m_dir": str(final / "yolo_0.5m"),
+        },
+        "crs": crs.to_string(),
+        "cattle": total,
+        "yolo_files_per_resolution": n_yolo,
+        "flights": per_flight,
+        "text": (f"{total} cattle in {len(labelled)} labelled flight(s), "
+                 f"{n_yolo} tile label files per resolution -> {final}"),
+    }
+
+
+def _site_crs(grid: Any | None, tiles: Mapping[str, list[TileGeoref]], out: Path) -> CRS:
+    if grid is not None:
+        return CRS.from_user_input(grid.crs.to_wkt())
+    for tl in tiles.values():
+        if tl:
+            return tl[0].crs
+    raise InputFileError(f"{out}: neither grid/grid.json nor any tile says which CRS the site "
+                     "uses; run 'geosim grid' and 'geosim tile' first")
