@@ -68,3 +68,16 @@ def test_geojson_collection_is_named_after_the_final_file(tmp_path: Path) -> Non
     gdf = gpd.GeoDataFrame({"a": [1]}, geometry=[shapely.Point(151, -34)], crs="EPSG:4326")
     doc = json.loads(write_geojson(gdf, tmp_path / "cattle.geojson").read_text())
     assert doc["name"] == "cattle"
+
+
+def test_gpkg_is_version_1_2_in_its_crs(tmp_path: Path) -> None:
+    import sqlite3
+
+    from geosim.io.vector import write_gpkg
+
+    gdf = gpd.GeoDataFrame({"a": [1]}, geometry=[shapely.Point(500000, 6200000)],
+                           crs="EPSG:32756")
+    path = write_gpkg(gdf, tmp_path / "x.gpkg", layer="x")
+    with sqlite3.connect(path) as con:  # the GeoPackage spec's version lives in user_version
+        assert con.execute("PRAGMA user_version").fetchone()[0] == 10200
+    assert gpd.read_file(path, layer="x").crs.to_epsg() == 32756

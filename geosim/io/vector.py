@@ -33,7 +33,11 @@ def write_geojson(gdf: gpd.GeoDataFrame, path: str | os.PathLike[str]) -> Path:
 
 
 def write_gpkg(gdf: gpd.GeoDataFrame, path: str | os.PathLike[str], *, layer: str) -> Path:
-    """Write ``gdf`` in its own CRS as a one-layer GeoPackage, atomically."""
+    """Write ``gdf`` in its own CRS as a one-layer GeoPackage, atomically.
+
+    GeoPackage 1.2 is asked for explicitly: newer GDAL writes 1.4 by default, which
+    QGIS 3.22 / GDAL 3.6 (still common on desktops) open only with a warning.
+    """
     with atomic_path(path) as tmp:
-        gdf.to_file(tmp, driver="GPKG", layer=layer, engine="pyogrio")
+        gdf.to_file(tmp, driver="GPKG", layer=layer, engine="pyogrio", VERSION="1.2")
     return Path(path)

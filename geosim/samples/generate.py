@@ -436,8 +436,9 @@ def make_sample_site(out_dir: str | Path, *, seed: int = 0,
                 _r(CENTRE_XY[1] + sat_shift[1] - in_ref[1], 4)],
             "note": "a feature at true p appears in the satellite file at p + shift_m and in "
                     "the reference flight's stated frame at true_to_stated(p); this is the "
-                    "satellite-minus-reference offset at the site centre (it varies with the "
-                    "reference's rotation and scale by < 1 cm per 10 m)"},
+                    "satellite-minus-reference offset at the site centre; away from the centre "
+                    "it changes with the reference flight's rotation and scale error, by "
+                    "about |rotation in radians| × distance (7.6 cm per 10 m for 0.43°)"},
         "sun": _sun_dict(sat_sun),
         "n_cattle": len(sat_entries),
         "paddock_counts": {name: sum(e["paddock"] == name for e in sat_entries)
