@@ -48,6 +48,12 @@ from geosim.errors import ConfigError, InputFileError
 
 _FLIGHT_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
+#: Allowed values of ``site.anchor``: the frame the aligned flights are put in.
+#: ``reference_flight`` is the paper's behaviour (the reference flight's own
+#: georeference); ``satellite`` also registers the reference flight to the
+#: satellite scene so the aligned stack lands in the satellite's frame.
+ANCHORS = ("reference_flight", "satellite")
+
 
 @dataclass(frozen=True)
 class FlightConfig:
@@ -146,7 +152,12 @@ class Parameters:
 
 @dataclass(frozen=True)
 class SiteConfig:
-    """A validated site: flights, satellite scene, paddocks and parameters."""
+    """A validated site: flights, satellite scene, paddocks and parameters.
+
+    ``anchor`` (one of :data:`ANCHORS`) is the frame of the aligned flights:
+    ``"reference_flight"`` (default, the paper's behaviour) or ``"satellite"``
+    (the aligned stack is registered to the satellite scene; needs ``satellite``).
+    """
 
     path: Path | None
     name: str
@@ -156,6 +167,17 @@ class SiteConfig:
     satellite: SatelliteConfig | None = None
     paddocks: Path | None = None
     parameters: Parameters = field(default_factory=Parameters)
+    anchor: str = "reference_flight"
+
+    def __post_init__(self) -> None:
+        if self.anchor not in ANCHORS:
+            raise ConfigError(f"site.anchor = {self.anchor!r} is not allowed; use one of "
+                              + ", ".join(f"'{a}'" for a in ANCHORS)
+                              + " ('reference_flight' is the default)")
+        if self.anchor == "satellite" and self.satellite is None:
+            raise ConfigError("site.anchor = 'satellite' needs a satellite scene: add a "
+                              "[satellite] table with the image path, or use "
+                              "anchor = 'reference_flight'")
 
     def flight(self, flight_id: str) -> FlightConfig:
         """The flight with this id; ConfigError listing the known ids otherwise."""
@@ -190,7 +212,7 @@ class SiteConfig:
 # --------------------------------------------------------------------------- loading
 
 _TOP_KEYS = {"site", "parameters", "flights", "satellite", "paddocks"}
-_SITE_KEYS = {"name", "crs", "reference_flight"}
+_SITE_KEYS = {"name", "crs", "reference_flight", "anchor"}
 _FLIGHT_KEYS = {"id", "image", "acquired", "labels"}
 _SATELLITE_KEYS = {"image", "acquired"}
 _PADDOCK_KEYS = {"path"}
@@ -382,24 +404,35 @@ def load_site(path: str | Path, *, check_rasters: bool = True) -> SiteConfig:
         raise ConfigError(f"{src}: site.reference_flight = {reference!r} is not a flight id "
                           f"(flights: {', '.join(ids)})")
 
+    anchor = site.get("anchor", "reference_flight")
+    if not isinstance(anchor, str) or anchor not in ANCHORS:
+        raise ConfigError(f"{src}: site.anchor = {anchor!r} is not allowed; use one of "
+                          + ", ".join(f"'{a}'" for a in ANCHORS)
+                          + " ('reference_flight' is the default)")
+
     if check_rasters:
         for i, f in enumerate(flights):
             _check_raster_has_crs(f.image, f"flights[{i}].image", src)
         if satellite is not None:
             _check_raster_has_crs(satellite.image, "satellite.image", src)
 
-    return SiteConfig(path=src, name=name, crs=crs, reference_flight=reference,
-                      flights=tuple(flights), satellite=satellite, paddocks=paddocks,
-                      parameters=parameters)
+    try:
+        return SiteConfig(path=src, name=name, crs=crs, reference_flight=reference,
+                          flights=tuple(flights), satellite=satellite, paddocks=paddocks,
+                          parameters=parameters, anchor=anchor)
+    except ConfigError as exc:
+        raise ConfigError(f"{src}: {exc}") from None
 
 
 def site_from_images(uav_images: Sequence[str | Path], satellite: str | Path | None = None, *,
-                     name: str = "images", crs: str = "auto", **parameters: Any) -> SiteConfig:
+                     name: str = "images", crs: str = "auto", anchor: str = "reference_flight",
+                     **parameters: Any) -> SiteConfig:
     """Build a site from image paths alone (for commands that take ``--uav``/``--satellite``).
 
     Flight ids are the file stems (made unique); acquisition times are unknown
-    and set to the files' modification times. Extra keyword arguments are
-    :class:`Parameters` fields.
+    and set to the files' modification times. ``anchor`` is ``site.anchor``
+    (:data:`ANCHORS`; ``"satellite"`` needs ``satellite``). Extra keyword
+    arguments are :class:`Parameters` fields.
     """
     flights: list[FlightConfig] = []
     used: set[str] = set()
@@ -429,4 +462,4 @@ def site_from_images(uav_images: Sequence[str | Path], satellite: str | Path | N
         raise ConfigError(f"unknown parameter {sorted(unknown)[0]!r}")
     return SiteConfig(path=None, name=name, crs=_check_crs(crs, Path("<arguments>")),
                       reference_flight=flights[0].id, flights=tuple(flights), satellite=sat,
-                      paddocks=None, parameters=Parameters(**parameters))
+                      paddocks=None, parameters=Parameters(**parameters), anchor=anchor)

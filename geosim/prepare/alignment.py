@@ -9,6 +9,10 @@
    :func:`geosim.align.register_similarity`). Low confidence is refused.
 3. **Apply** by resampling each flight onto the aligned grid, window by window
    (bicubic imagery, conservative mask); the reference is copied bit for bit.
+   With ``site.anchor = "satellite"`` the reference flight is first registered to
+   the satellite scene (:mod:`geosim.prepare.anchor`) and that transform ``T`` is
+   composed into every correction (``C' = T ∘ C``): the aligned frame is then the
+   satellite's, and the reference flight is resampled too.
 4. **Check** locally: phase correlation in a grid of windows between each aligned
    flight and the aligned reference (:func:`geosim.align.local_shift_field`); what
    is left are stitching warps, reported as statistics and GeoJSON arrows.
@@ -31,6 +35,11 @@ the **aligned frame** (the reference flight's georeference)::
 
 A flight whose stated georeference is displaced by ``+e`` relative to the
 reference gets ``shift_m ≈ −e``; the reference itself gets the identity.
+With the satellite anchor the entries hold the full correction ``C' = T ∘ C``
+(stated → satellite frame; the flight → reference part is kept under
+``to_reference``) and ``alignment.json["anchor"]`` holds ``T`` in the same form
+(``to``, ``shift_m``, ``rotation_deg``, ``scale``, ``center_m``, ``confidence``,
+``method``); with the default anchor ``"reference_flight"`` it is the identity.
 :func:`correction_affine` turns an entry into an :class:`affine.Affine` (map →
 map) that moves label geometries the same way. ``matrix_px`` is the kernel's 2×3
 matrix in window pixel coordinates (pixel centres at integers, reference pixel

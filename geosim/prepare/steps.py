@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -16,13 +17,16 @@ from typing import Any
 import geopandas as gpd
 import numpy as np
 import rasterio
+from affine import Affine
+from rasterio.windows import Window
 
 from geosim.config import SiteConfig
-from geosim.errors import InputFileError
+from geosim.errors import AlignmentError, InputFileError
 from geosim.io.atomic import write_json, write_text
 from geosim.io.raster import open_raster, provenance_tags
 from geosim.io.vector import write_geojson, write_gpkg
 from geosim.prepare import alignment as al
+from geosim.prepare import anchor as anc
 from geosim.prepare.footprints import common_extent, raster_footprint
 from geosim.prepare.grid import SiteGrid, resolve_site_crs, snap_grid, union_bounds
 from geosim.prepare.pairs import pair_rows, pairs_csv_text
@@ -203,17 +207,129 @@ def read_common_extent(out_dir: Path):
 # --------------------------------------------------------------------------- align
 
 
-@_bounded_gdal_cache
-def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
-    """Register every flight to the reference and resample it onto the aligned grid.
+CONVENTION_REFERENCE = (
+    "Per flight, the correction C maps map coordinates (site CRS, x east, y north, m) "
+    "as stated by that flight's georeference to the aligned frame (the reference "
+    "flight's): C(p) = center_m + shift_m + scale * R(rotation_deg) * (p - center_m), "
+    "rotation counter-clockwise on a north-up map. matrix_px: reference window pixel "
+    "-> moving window pixel (pixel centres at integers); matrix_grid_px: the same in "
+    "site UAV grid corner coordinates.")
+CONVENTION_SATELLITE = (
+    "Per flight, the correction C' = T o C maps map coordinates (site CRS, x east, y north, "
+    "m) as stated by that flight's georeference to the aligned frame, which is the "
+    "satellite scene's: C registers the flight to the reference flight (kept under "
+    "to_reference), T (anchor) registers the reference flight to the satellite scene. "
+    "C'(p) = center_m + shift_m + scale * R(rotation_deg) * (p - center_m), rotation "
+    "counter-clockwise on a north-up map. matrix_px: the kernel's reference window pixel "
+    "-> moving window pixel (flight to reference flight, pixel centres at integers); "
+    "matrix_grid_px: aligned-frame site UAV grid corner coordinates -> the flight's grid "
+    "corner coordinates (C' as applied).")
+ANCHOR_NONE_METHOD = ("none: the aligned frame is the reference flight's stated georeference "
+                      "(the paper's behaviour)")
 
-    Writes ``aligned/<flight>.tif``, ``alignment.json`` and ``alignment_check.geojson``
-    (local shift arrows). See :mod:`geosim.prepare.alignment` for the conventions.
+
+def _identity_anchor(center_m: list[float]) -> dict[str, Any]:
+    return {"to": "reference_flight", "shift_m": [0.0, 0.0], "rotation_deg": 0.0,
+            "scale": 1.0, "center_m": list(center_m), "confidence": 1.0,
+            "method": ANCHOR_NONE_METHOD, "model": "identity"}
+
+
+def anchor_to_satellite(site: SiteConfig, out_dir: Path, grid: SiteGrid, window: Any,
+                        center_m: list[float]) -> tuple[Affine, dict[str, Any]]:
+    """Register the reference flight to the satellite scene on the 0.5 m grid.
+
+    The reference flight (``grid/<ref>.tif``) is area-averaged over ``window`` (the
+    aligned window, whole satellite pixels) and registered to the same window of
+    ``grid/satellite.tif`` (:func:`geosim.prepare.anchor.register_to_satellite`).
+
+    Returns
+    -------
+    (T, record)
+        ``T`` maps reference-frame map coordinates to satellite-frame ones; the
+        record is ``alignment.json["anchor"]``.
 
     Raises
     ------
     AlignmentError
-        A flight's registration confidence is below ``min_align_confidence``.
+        The registration confidence is below ``min_align_confidence`` or the overlap
+        is too small; the message names the satellite and the reference flight and
+        points to ``anchor = "reference_flight"``.
+    InputFileError
+        ``grid/satellite.tif`` is missing.
+    """
+    out = Path(out_dir)
+    ref_id = site.reference_flight
+    sat_path = out / "grid" / "satellite.tif"
+    if not sat_path.is_file():
+        raise InputFileError(f"{sat_path} not found: site.anchor = 'satellite' registers the "
+                             "reference flight to it; run 'geosim grid' (or 'geosim run') "
+                             "first")
+    phi = grid.phi
+    ref_grey, ref_valid = anc.read_area_averaged(out / "grid" / f"{ref_id}.tif", window, phi,
+                                                 block_px=(BLOCK_PX // phi) * phi)
+    sat_win = Window(int(window.col_off) // phi, int(window.row_off) // phi,
+                     int(window.width) // phi, int(window.height) // phi)
+    sat_grey, sat_valid, sat_t = anc.read_satellite_window(sat_path, sat_win)
+    sat_name = site.satellite.image if site.satellite is not None else sat_path
+    try:
+        fit = anc.register_to_satellite(ref_grey, ref_valid, sat_grey, sat_valid,
+                                        min_confidence=site.parameters.min_align_confidence,
+                                        what=f"reference flight {ref_id} against the satellite")
+    except AlignmentError as exc:
+        raise AlignmentError(
+            f"site.anchor = 'satellite': cannot register reference flight {ref_id} to the "
+            f"satellite scene {sat_name} ({exc}); the two share too little stable texture "
+            "(other season, clouds, little overlap). Set anchor = \"reference_flight\" in "
+            "[site] to keep the reference flight's georeference (the paper's behaviour), or "
+            "lower parameters.min_align_confidence if you trust the scene") from exc
+    t = anc.anchor_affine(fit.matrix_px, sat_t)
+    cx, cy = center_m
+    moved = t @ (cx, cy)
+    record = {
+        "to": "satellite",
+        "shift_m": [float(moved[0] - cx), float(moved[1] - cy)],
+        "rotation_deg": math.degrees(math.atan2(t.d, t.a)),
+        "scale": math.sqrt(abs(t.determinant)),
+        "center_m": [float(cx), float(cy)],
+        "confidence": fit.confidence,
+        "method": anc.METHOD,
+        "model": fit.model,
+        "correction_affine": [float(v) for v in list(t)[:6]],
+        "reference_flight": ref_id,
+        "satellite": "grid/satellite.tif",
+        "satellite_source": str(sat_name),
+        "window_sat_px": {"col_off": int(sat_win.col_off), "row_off": int(sat_win.row_off),
+                          "width": int(sat_win.width), "height": int(sat_win.height)},
+        "registration": fit.to_dict(),
+        "convention": ("T maps map coordinates in the reference flight's frame to the "
+                       "satellite scene's frame: T(p) = center_m + shift_m + scale * "
+                       "R(rotation_deg) * (p - center_m); registration.matrix_px maps "
+                       "satellite pixel centres to the area-averaged reference's (window "
+                       "window_sat_px of grid/satellite.tif)."),
+    }
+    return t, record
+
+
+@_bounded_gdal_cache
+def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+    """Register every flight to the reference and resample it onto the aligned grid.
+
+    With ``site.anchor = "satellite"`` the reference flight is also registered to the
+    satellite scene (:func:`anchor_to_satellite`) and that transform ``T`` is composed
+    into every flight's correction (``C' = T ∘ C``), so the aligned flights (the
+    reference included, then resampled rather than copied) land in the satellite's
+    frame; the aligned window follows ``T``.
+
+    Writes ``aligned/<flight>.tif``, ``alignment.json`` and ``alignment_check.geojson``
+    (local shift arrows). See :mod:`geosim.prepare.alignment` for the conventions;
+    ``alignment.json["anchor"]`` records ``to``, ``shift_m``, ``rotation_deg``,
+    ``scale``, ``center_m``, ``confidence`` and ``method``.
+
+    Raises
+    ------
+    AlignmentError
+        A flight's registration confidence (or the reference flight's against the
+        satellite, with the satellite anchor) is below ``min_align_confidence``.
     """
     out = Path(out_dir)
     grid = read_grid(out)
@@ -245,10 +361,26 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
         entry["path"] = f"aligned/{f.id}.tif"
         entries[f.id] = entry
 
-    aligned_transform = grid.uav_window_transform(awin)
+    center_m = entries[ref_id]["center_m"]
     params = {"reference": ref_id, "align_window_px": p.align_window_px}
+    if site.anchor == "satellite":
+        t_anchor, anchor = anchor_to_satellite(site, out, grid, awin, center_m)
+        entries = {k: anc.compose_entry(e, t_anchor, grid.uav_transform)
+                   for k, e in entries.items()}
+        from shapely.affinity import affine_transform
+
+        awin = al.aligned_window(affine_transform(common, [t_anchor.a, t_anchor.b, t_anchor.d,
+                                                           t_anchor.e, t_anchor.c, t_anchor.f]),
+                                 grid)
+        params["anchor"] = "satellite"
+    else:
+        anchor = _identity_anchor(center_m)
+    aligned_transform = grid.uav_window_transform(awin)
     for f in site.flights:
-        m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
+        if site.anchor == "satellite":
+            m_grid = np.vstack([np.array(entries[f.id]["matrix_grid_px"]), [0.0, 0.0, 1.0]])
+        else:
+            m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
         al.apply_alignment(gpath[f.id], out / "aligned" / f"{f.id}.tif", m_grid=m_grid,
                            out_window=awin, block_px=BLOCK_PX, what=f.id,
                            tags=provenance_tags("align", params, [gpath[f.id]]))
@@ -277,13 +409,9 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
 
     doc = {
         "reference": ref_id,
-        "convention": (
-            "Per flight, the correction C maps map coordinates (site CRS, x east, y north, m) "
-            "as stated by that flight's georeference to the aligned frame (the reference "
-            "flight's): C(p) = center_m + shift_m + scale * R(rotation_deg) * (p - center_m), "
-            "rotation counter-clockwise on a north-up map. matrix_px: reference window pixel "
-            "-> moving window pixel (pixel centres at integers); matrix_grid_px: the same in "
-            "site UAV grid corner coordinates."),
+        "convention": (CONVENTION_SATELLITE if site.anchor == "satellite"
+                       else CONVENTION_REFERENCE),
+        "anchor": anchor,
         "crs": _crs_name(grid.crs),
         "aligned_grid": {"transform": list(aligned_transform)[:6],
                          "shape": [int(awin.height), int(awin.width)],
@@ -296,7 +424,15 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     }
     write_json(out / "alignment.json", doc)
     worst = max((abs(e["shift_m"][0]) + abs(e["shift_m"][1]), k) for k, e in entries.items())
+    anchor_text = ("" if anchor["to"] != "satellite" else
+                   f"; anchored to the satellite (shift {anchor['shift_m'][0]:+.3f}, "
+                   f"{anchor['shift_m'][1]:+.3f} m, {anchor['model']}, confidence "
+                   f"{anchor['confidence']:.2f})")
     return {"reference": ref_id, "aligned_shape": [int(awin.height), int(awin.width)],
+            "anchor": {"to": anchor["to"], "shift_m": [round(v, 4) for v in anchor["shift_m"]],
+                       "rotation_deg": round(anchor["rotation_deg"], 5),
+                       "scale": round(anchor["scale"], 6),
+                       "confidence": round(anchor["confidence"], 3)},
             "flights": {k: {"shift_m": [round(v, 4) for v in e["shift_m"]],
                             "rotation_deg": round(e["rotation_deg"], 5),
                             "scale": round(e["scale"], 6),
@@ -305,7 +441,7 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
             "local_median_shift_px": {k: v["median_shift_px"] for k, v in local.items()},
             "text": f"{len(entries)} flight(s) on reference {ref_id}; aligned grid "
                     f"{int(awin.width)}×{int(awin.height)} px; largest |shift| at flight "
-                    f"{worst[1]}"}
+                    f"{worst[1]}{anchor_text}"}
 
 
 # --------------------------------------------------------------------------- tiles
