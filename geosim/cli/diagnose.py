@@ -1,0 +1,53 @@
+"""``geosim diagnose``: name the physics the paper's model leaves out."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from geosim.errors import ConfigError
+
+
+@click.command()
+@click.argument("site_file", required=False, type=click.Path(path_type=Path))
+@click.option("--uav", "uav", multiple=True, type=click.Path(path_type=Path),
+              help="UAV orthomosaic GeoTIFF (any CRS); repeatable. The first is diagnosed.")
+@click.option("--satellite", "satellite", type=click.Path(path_type=Path),
+              help="Real satellite scene GeoTIFF (any CRS).")
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
+              help="Output folder (with SITE_FILE: the run folder; diagnosis/ is written in it).")
+@click.option("--uav-gsd", "uav_gsd_m", default=0.05, show_default=True, type=float,
+              help="UAV grid pixel size, metres (standalone mode).")
+@click.option("--sat-gsd", "sat_gsd_m", default=0.5, show_default=True, type=float,
+              help="Satellite grid pixel size, metres (standalone mode).")
+@click.option("--seed", default=0, show_default=True, type=int,
+              help="Seed of the noise realisation in the refined simulation.")
+def diagnose(site_file: Path | None, uav: tuple[Path, ...], satellite: Path | None, out: Path,
+             uav_gsd_m: float, sat_gsd_m: float, seed: int) -> None:
+    """Locate where simulation and the real satellite scene differ, name the missing physics,
+    model it and refit.
+
+    Either SITE_FILE (a run folder --out made by `geosim run` must exist) or
+    --uav ... --satellite ... (standalone).
+    """
+    from geosim.diagnose.steps import diagnose_images, run_diagnose
+
+    if site_file is not None:
+        if uav or satellite:
+            raise ConfigError("give either SITE_FILE or --uav/--satellite, not both")
+        from geosim.config import load_site
+
+        summary = run_diagnose(load_site(site_file), out)
+    else:
+        if not uav or satellite is None:
+            raise ConfigError("geosim diagnose needs SITE_FILE or at least one --uav and "
+                              "--satellite; see geosim diagnose --help")
+        summary = diagnose_images(list(uav), satellite, out, uav_gsd_m=uav_gsd_m,
+                                  sat_gsd_m=sat_gsd_m, seed=seed)
+    click.echo(f"baseline Q {summary['q_base']:.2f} -> refined Q {summary['q_refined']:.2f}")
+    for name, params in summary["effects"].items():
+        click.echo(f"  {name}: {params}")
+    click.echo(f"RMSE {summary['rmse'][0]:.2f} -> {summary['rmse'][1]:.2f} DN; spectral error "
+               f"{summary['spectral_error'][0]:.3f} -> {summary['spectral_error'][1]:.3f}")
+    click.echo(f"outputs in {summary['out']}/ (diagnosis.json, report.md)")

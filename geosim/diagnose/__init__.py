@@ -1,0 +1,12 @@
+"""Mismatch diagnosis: where the paper's model and a real satellite scene differ, which
+physics the model left out, and how much the fit improves once it is modelled.
+
+Modules: :mod:`~geosim.diagnose.spectra` (Welch cross-spectra, transfer function,
+coherence, spectral error), :mod:`~geosim.diagnose.coregister` (sub-pixel shift),
+:mod:`~geosim.diagnose.effects` (the catalogue), :mod:`~geosim.diagnose.fit`
+(joint Q + effects fit), :mod:`~geosim.diagnose.select` (evidence: ΔBIC and held-out),
+:mod:`~geosim.diagnose.simulate` (the paper's model at any Q),
+:mod:`~geosim.diagnose.locate` (maps and regions), :mod:`~geosim.diagnose.engine`
+(the whole diagnosis on arrays), :mod:`~geosim.diagnose.report` and
+:mod:`~geosim.diagnose.steps` (files).
+"""

@@ -1,0 +1,263 @@
+"""File layer of the diagnosis: read grids, build the baseline, run, write.
+
+* :func:`run_diagnose` — pipeline step: reads ``out_dir/grid/satellite.tif``
+  (0.5 m shared grid), ``out_dir/aligned/<flight>.tif`` (0.05 m) and
+  ``out_dir/calibration.json``; writes ``out_dir/diagnosis/``.
+* :func:`diagnose_images` — standalone: any-CRS UAV and satellite GeoTIFFs are
+  reprojected onto a shared nested grid (UAV ``phi`` × finer) over their common
+  extent, then diagnosed.
+
+The diagnosis works on one window of at most ``max_sat_px`` × ``max_sat_px``
+satellite pixels at the centre of the common valid area (the UAV part of it is
+``phi``² times larger and must fit in memory).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.crs import CRS
+from rasterio.warp import Resampling, reproject, transform_bounds
+
+from geosim.diagnose.engine import diagnose_arrays
+from geosim.diagnose.locate import laplacian_variance
+from geosim.diagnose.report import write_diagnosis
+from geosim.diagnose.simulate import QSimulator
+from geosim.errors import DiagnosisError, ExtentError
+from geosim.io.raster import image_band_indexes, open_raster, read_valid_mask
+from geosim.physics.radiometry import luma
+
+__all__ = ["run_diagnose", "diagnose_images", "calibrate_q_lv", "diagnose_grids"]
+
+MAX_SAT_PX = 384
+
+
+def calibrate_q_lv(sim: QSimulator, real_grey: np.ndarray, valid: np.ndarray, *,
+                   q_min: float = 0.5, q_max: float = 8.0, quantized: bool = True) -> float:
+    """Q at which the paper model's Laplacian variance equals the real scene's.
+
+    Uses the project's calibration, :func:`geosim.degrade.calibrate.calibrate_q`, when it
+    is importable (it also accounts for the LV that rounding to whole DN adds); otherwise a
+    bisection in log Q on the simulator.
+    """
+    target = laplacian_variance(real_grey, valid)
+    try:
+        from geosim.degrade.calibrate import calibrate_q
+    except ImportError:
+        pass
+    else:
+        return float(calibrate_q(sim.uav, sim.valid, target, phi=sim.phi,
+                                 q_min=max(q_min, sim.q_min), q_max=q_max,
+                                 quantized=quantized, name="UAV image"))
+    lo, hi = np.log(max(q_min, sim.q_min)), np.log(q_max)
+
+    def lv(q: float) -> float:
+        return laplacian_variance(luma(sim(q)), valid)
+
+    if lv(np.exp(lo)) < target:
+        return float(np.exp(lo))
+    if lv(np.exp(hi)) > target:
+        return float(np.exp(hi))
+    for _ in range(22):
+        mid = 0.5 * (lo + hi)
+        if lv(np.exp(mid)) > target:
+            lo = mid
+        else:
+            hi = mid
+    return float(np.exp(0.5 * (lo + hi)))
+
+
+def _central_window(valid: np.ndarray, max_px: int) -> tuple[slice, slice]:
+    rows = np.flatnonzero(valid.any(axis=1))
+    cols = np.flatnonzero(valid.any(axis=0))
+    if rows.size == 0:
+        raise ExtentError("satellite scene on the grid: no valid pixel in the common extent; "
+                          "check that UAV and satellite images overlap")
+    rc, cc = (rows[0] + rows[-1]) // 2, (cols[0] + cols[-1]) // 2
+    h = min(max_px, rows[-1] - rows[0] + 1)
+    w = min(max_px, cols[-1] - cols[0] + 1)
+    r0 = max(0, rc - h // 2)
+    c0 = max(0, cc - w // 2)
+    return slice(r0, r0 + h), slice(c0, c0 + w)
+
+
+def diagnose_grids(uav: np.ndarray, uav_valid: np.ndarray, sat: np.ndarray,
+                   sat_valid: np.ndarray, sat_transform: Affine, crs: CRS, out_dir: Path, *,
+                   phi: int, q_base: float | None = None, seed: int = 0,
+                   q_min: float = 0.5, q_max: float = 8.0, sources: list[str] | None = None,
+                   extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Diagnose co-gridded arrays (UAV at sat/phi, satellite at the sat grid) and write."""
+    sim = QSimulator(uav.astype(np.float32), phi=phi, valid=uav_valid, q_min=0.6)
+    s0 = sim(2.0)
+    valid = sat_valid & sim_valid(uav_valid, phi, s0.shape[-2:])
+    if q_base is None:
+        q_base = calibrate_q_lv(sim, luma(sat), valid, q_min=q_min, q_max=q_max)
+    diag = diagnose_arrays(sat, sim, q_base=q_base, rng=np.random.default_rng(seed),
+                           valid=valid, gsd_m=abs(sat_transform.a), q_lo=0.7)
+    doc = write_diagnosis(diag, out_dir, transform=sat_transform, crs=crs, sources=sources,
+                          extra=extra)
+    return doc
+
+
+def sim_valid(uav_valid: np.ndarray, phi: int, shape: tuple[int, int]) -> np.ndarray:
+    r, c = shape
+    v = uav_valid[: r * phi, : c * phi].reshape(r, phi, c, phi)
+    return v.all(axis=(1, 3))
+
+
+def _summary(doc: dict[str, Any], out: Path) -> dict[str, Any]:
+    return {"out": str(out), "q_base": doc["baseline"]["q"], "q_refined": doc["refined"]["q"],
+            "effects": {e["name"]: e["params"] for e in doc["effects"]},
+            "rmse": [doc["baseline"]["rmse"], doc["refined"]["rmse"]],
+            "spectral_error": [doc["baseline"]["spectral_error"],
+                               doc["refined"]["spectral_error"]]}
+
+
+def _read_q_base(path: Path, flight: str) -> float | None:
+    """The calibrated Q for ``flight`` from calibration.json (its own Q, else the mean)."""
+    if not path.is_file():
+        return None
+    data = json.loads(path.read_text())
+    for f in data.get("flights", []) or []:
+        if isinstance(f, dict) and f.get("flight") == flight and f.get("status", "ok") == "ok" \
+                and isinstance(f.get("q"), (int, float)):
+            return float(f["q"])
+    for key in ("mean_q", "q"):
+        if isinstance(data.get(key), (int, float)):
+            return float(data[key])
+    return None
+
+
+def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
+    """Pipeline step ``diagnose``: reads the run folder, writes ``out_dir/diagnosis/``."""
+    out = Path(out_dir)
+    sat_path = out / "grid" / "satellite.tif"
+    if not sat_path.is_file():
+        raise DiagnosisError(f"{sat_path}: the satellite scene on the shared grid is missing; "
+                             "run the grid step first (geosim run) or give --satellite")
+    flight = site.reference_flight if site.reference_flight else site.flights[0].id
+    uav_path = out / "aligned" / f"{flight}.tif"
+    if not uav_path.is_file():
+        raise DiagnosisError(f"{uav_path}: the aligned reference flight is missing; run the "
+                             "align step first")
+    phi = site.parameters.phi
+    with open_raster(uav_path, what=f"aligned flight {flight}") as du:
+        ut = du.transform  # the aligned UAV grid is north-up and nested in the satellite grid
+        u_bounds = (ut.c, ut.f + ut.e * du.height, ut.c + ut.a * du.width, ut.f)
+    with open_raster(sat_path, what="satellite on grid") as ds:
+        s_t = ds.transform
+        # satellite pixels fully inside the aligned flight's extent
+        c0 = max(0, int(np.ceil((u_bounds[0] - s_t.c) / s_t.a - 1e-6)))
+        c1 = min(ds.width, int(np.floor((u_bounds[2] - s_t.c) / s_t.a + 1e-6)))
+        r0 = max(0, int(np.ceil((s_t.f - u_bounds[3]) / -s_t.e - 1e-6)))
+        r1 = min(ds.height, int(np.floor((s_t.f - u_bounds[1]) / -s_t.e + 1e-6)))
+        if c1 - c0 < 16 or r1 - r0 < 16:
+            raise ExtentError(f"{uav_path} and {sat_path} overlap by less than 16 satellite "
+                              "pixels; the diagnosis needs a common extent")
+        inner = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
+        svalid = read_valid_mask(ds, inner)
+        rs, cs = _central_window(svalid, MAX_SAT_PX)
+        win = rasterio.windows.Window(c0 + cs.start, r0 + rs.start, cs.stop - cs.start,
+                                      rs.stop - rs.start)
+        sat = ds.read(image_band_indexes(ds)[:3], window=win).astype(float)
+        sval = read_valid_mask(ds, win)
+        st = ds.window_transform(win)
+        crs = ds.crs
+    with open_raster(uav_path, what=f"aligned flight {flight}") as du:
+        col = int(round((st.c - ut.c) / ut.a))
+        row = int(round((st.f - ut.f) / ut.e))
+        uwin = rasterio.windows.Window(col, row, sat.shape[-1] * phi, sat.shape[-2] * phi)
+        uav = du.read(image_band_indexes(du)[:3], window=uwin).astype(np.float32)
+        uval = read_valid_mask(du, uwin)
+    q_base = _read_q_base(out / "calibration.json", flight)
+    doc = diagnose_grids(uav, uval, sat, sval, st, crs, out / "diagnosis", phi=phi,
+                         q_base=q_base, q_min=site.parameters.q_min,
+                         q_max=site.parameters.q_max,
+                         sources=[str(sat_path), str(uav_path)], extra={"flight": flight})
+    summary = _summary(doc, out / "diagnosis")
+    # the bundled sample site ships its ground truth: put fitted and true side by side
+    site_path = getattr(site, "path", None)
+    truth_path = Path(site_path).parent / "truth.json" if site_path else None
+    if truth_path is not None and truth_path.is_file():
+        from geosim.diagnose.report import compare_with_truth, format_truth_comparison
+        from geosim.io.atomic import write_text
+
+        rows = compare_with_truth(doc, json.loads(truth_path.read_text()))
+        summary["truth_comparison"] = rows
+        write_text(out / "diagnosis" / "truth_comparison.txt", format_truth_comparison(rows)
+                   + "\n(haze and misregistration are fitted relative to the reference flight's "
+                     "radiometry and stated georeference; truth.json gives them relative to the "
+                     "true ground)\n")
+    return summary
+
+
+def _to_grid(path: Path, crs: CRS, transform: Affine, shape: tuple[int, int], what: str
+             ) -> tuple[np.ndarray, np.ndarray]:
+    with open_raster(path, what=what) as ds:
+        bands = image_band_indexes(ds)[:3]
+        dst = np.zeros((len(bands), *shape), np.float32)
+        for i, b in enumerate(bands):
+            reproject(rasterio.band(ds, b), dst[i], dst_transform=transform, dst_crs=crs,
+                      resampling=Resampling.cubic, dst_nodata=0)
+        m = np.zeros(shape, np.uint8)
+        reproject(ds.dataset_mask(), m, src_transform=ds.transform, src_crs=ds.crs,
+                  dst_transform=transform, dst_crs=crs, resampling=Resampling.nearest,
+                  dst_nodata=0)
+    return dst, m > 0
+
+
+def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
+                    out_dir: str | Path, *, uav_gsd_m: float = 0.05, sat_gsd_m: float = 0.5,
+                    crs: str | None = None, seed: int = 0, q_min: float = 0.5,
+                    q_max: float = 8.0, max_sat_px: int = MAX_SAT_PX) -> dict[str, Any]:
+    """Standalone diagnosis from GeoTIFFs in any CRS.
+
+    The satellite's CRS is used when projected (else the UTM zone of its centre, or
+    ``crs``); the common extent of the first UAV image and the satellite is snapped to
+    the satellite GSD, both are reprojected (cubic) onto nested grids, and the central
+    window of at most ``max_sat_px`` satellite pixels is diagnosed.
+    """
+    from geosim.prepare.grid import gsd_ratio, utm_crs_for_lonlat
+
+    phi = gsd_ratio(uav_gsd_m, sat_gsd_m)
+    sat_path = Path(satellite_path)
+    uav_path = Path(uav_paths[0])
+    with open_raster(sat_path, what="--satellite") as ds:
+        if crs is not None:
+            dst_crs = CRS.from_user_input(crs)
+        elif ds.crs.is_projected:
+            dst_crs = ds.crs
+        else:
+            b = transform_bounds(ds.crs, "EPSG:4326", *ds.bounds)
+            dst_crs = utm_crs_for_lonlat((b[0] + b[2]) / 2, (b[1] + b[3]) / 2)
+        sb = transform_bounds(ds.crs, dst_crs, *ds.bounds)
+    with open_raster(uav_path, what="--uav") as du:
+        ub = transform_bounds(du.crs, dst_crs, *du.bounds)
+    left, bottom = max(sb[0], ub[0]), max(sb[1], ub[1])
+    right, top = min(sb[2], ub[2]), min(sb[3], ub[3])
+    if right - left < 16 * sat_gsd_m or top - bottom < 16 * sat_gsd_m:
+        raise ExtentError(f"--uav {uav_path} and --satellite {sat_path} overlap by less than 16 "
+                          "satellite pixels; give images of the same place")
+    cx, cy = (left + right) / 2, (top + bottom) / 2
+    half = max_sat_px * sat_gsd_m / 2
+    left, right = max(left, cx - half), min(right, cx + half)
+    bottom, top = max(bottom, cy - half), min(top, cy + half)
+    left = np.ceil(left / sat_gsd_m) * sat_gsd_m
+    top = np.floor(top / sat_gsd_m) * sat_gsd_m
+    w = int(np.floor((right - left) / sat_gsd_m))
+    h = int(np.floor((top - bottom) / sat_gsd_m))
+    st = Affine(sat_gsd_m, 0, left, 0, -sat_gsd_m, top)
+    ut = Affine(uav_gsd_m, 0, left, 0, -uav_gsd_m, top)
+    sat, sval = _to_grid(sat_path, dst_crs, st, (h, w), "--satellite")
+    uav, uval = _to_grid(uav_path, dst_crs, ut, (h * phi, w * phi), "--uav")
+    out = Path(out_dir)
+    doc = diagnose_grids(uav, uval, sat.astype(float), sval, st, dst_crs, out, phi=phi,
+                         seed=seed, q_min=q_min, q_max=q_max,
+                         sources=[str(sat_path)] + [str(p) for p in uav_paths],
+                         extra={"flight": uav_path.stem})
+    return _summary(doc, out)
