@@ -41,3 +41,7 @@ def demo(out: Path, only: tuple[str, ...]) -> None:
     site_path = bundled_site(out / "sample_site", echo=lambda s: click.echo(s, err=True))
     click.echo(f"sample site: {site_path}", err=True)
     _run(site_path, out, only)
+    comparison = out / "diagnosis" / "truth_comparison.txt"
+    if comparison.is_file():  # the sample site ships its truth: show what diagnose found
+        click.echo("\ndiagnosis of the sample satellite scene, fitted vs truth.json:")
+        click.echo(comparison.read_text().rstrip())

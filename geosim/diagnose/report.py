@@ -257,6 +257,21 @@ def compare_with_truth(doc: dict[str, Any], truth: dict[str, Any]) -> list[dict[
                      "truth": true_eff.pop("optics")})
     alt_of = {a: e["name"] for e in doc.get("effects", [])
               for a in e.get("indistinguishable_from", []) or []}
+    sat = truth.get("satellite", {})
+    rel = sat.get("misregistration_vs_reference_flight")
+    if rel is not None:
+        # the simulation is in the reference flight's stated frame, so the shift to compare
+        # is satellite-minus-reference, with the reference's own rotation and scale error
+        ref_err = truth.get("flights", {}).get(rel.get("reference"), {}).get("georef_error", {})
+        true_eff["misregistration"] = {
+            "shift_m": rel.get("shift_m_at_site_centre"),
+            "rotation_deg": ref_err.get("rotation_deg"), "scale": ref_err.get("scale"),
+            "relative_to": f"reference flight {rel.get('reference')}"}
+    if "acquired" in sat:
+        # another acquisition day: the cattle and the shadows are elsewhere
+        true_eff.setdefault("scene_change", {
+            "acquired": sat["acquired"], "n_cattle": sat.get("n_cattle"),
+            "sun_elevation_deg": sat.get("sun", {}).get("elevation_deg")})
     for name in sorted(set(true_eff) | set(found)):
         row = {"effect": name, "fitted": found.get(name), "truth": true_eff.get(name)}
         if name in alt_of:
@@ -266,12 +281,15 @@ def compare_with_truth(doc: dict[str, Any], truth: dict[str, Any]) -> list[dict[
 
 
 def format_truth_comparison(rows: list[dict[str, Any]]) -> str:
-    """A plain-text table of :func:`compare_with_truth` rows."""
-    lines = [f"{'effect':<22} {'fitted':<78} truth"]
+    """A plain-text list of :func:`compare_with_truth` rows: each effect, fitted vs truth.
+
+    Values are never cut: each effect gets a ``fitted`` and a ``truth`` line.
+    """
+    lines = []
     for r in rows:
         fitted = "not claimed" if r["fitted"] is None else _f(r["fitted"])
         if r.get("note"):
             fitted += f" ({r['note']})"
         truth = "not present" if r["truth"] is None else _f(r["truth"])
-        lines.append(f"{r['effect']:<22} {fitted[:78]:<78} {truth}")
+        lines.append(f"{r['effect']}\n    fitted: {fitted}\n    truth:  {truth}")
     return "\n".join(lines)

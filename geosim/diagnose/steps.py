@@ -111,7 +111,12 @@ def sim_valid(uav_valid: np.ndarray, phi: int, shape: tuple[int, int]) -> np.nda
 
 
 def _summary(doc: dict[str, Any], out: Path) -> dict[str, Any]:
-    return {"out": str(out), "q_base": doc["baseline"]["q"], "q_refined": doc["refined"]["q"],
+    base, ref = doc["baseline"], doc["refined"]
+    claimed = ", ".join(e["name"] for e in doc["effects"]) or "none"
+    text = (f"Q {base['q']:.2f} (LV) -> {ref['q']:.2f} refitted; claimed: {claimed}; "
+            f"RMSE {base['rmse']:.2f} -> {ref['rmse']:.2f} DN, spectral error "
+            f"{base['spectral_error']:.3f} -> {ref['spectral_error']:.3f}")
+    return {"text": text, "out": str(out), "q_base": base["q"], "q_refined": ref["q"],
             "effects": {e["name"]: e["params"] for e in doc["effects"]},
             "rmse": [doc["baseline"]["rmse"], doc["refined"]["rmse"]],
             "spectral_error": [doc["baseline"]["spectral_error"],
@@ -190,9 +195,9 @@ def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
         rows = compare_with_truth(doc, json.loads(truth_path.read_text()))
         summary["truth_comparison"] = rows
         write_text(out / "diagnosis" / "truth_comparison.txt", format_truth_comparison(rows)
-                   + "\n(haze and misregistration are fitted relative to the reference flight's "
-                     "radiometry and stated georeference; truth.json gives them relative to the "
-                     "true ground)\n")
+                   + "\n(haze is fitted relative to the reference flight's radiometry, truth.json "
+                     "gives it relative to the true ground; misregistration is compared with "
+                     "the satellite-minus-reference-flight offset in truth.json)\n")
     return summary
 
 
