@@ -79,9 +79,9 @@ from geosim.align.phasecorr import (
     MIN_WINDOW_PX,
     PhaseCorrelation,
     _valid_mask,
-    as_grey,
     correlate_prepared,
     cross_power,
+    grey_pair,
     noise_envelope,
     peak_confidence,
     prepare,
@@ -90,7 +90,7 @@ from geosim.align.phasecorr import (
     window_2d,
     wrap_shift,
 )
-from geosim.errors import AlignmentError, RasterError
+from geosim.errors import AlignmentError
 
 __all__ = [
     "FM_MAX_PX",
@@ -631,15 +631,8 @@ def register_similarity(reference: np.ndarray, moving: np.ndarray, *,
         are flat, or the final confidence is below ``min_confidence`` (no
         texture, no overlap, unrelated images); the message says which.
     """
-    ref = as_grey(reference, "reference")
-    mov = as_grey(moving, "moving")
-    if ref.shape != mov.shape:
-        raise RasterError(f"reference {ref.shape} and moving {mov.shape} windows differ in shape; "
-                          "cut windows of the same size from both")
-    if min(ref.shape) < MIN_SIMILARITY_PX:
-        raise AlignmentError(f"window of {ref.shape[0]}×{ref.shape[1]} px is too small to register "
-                             f"rotation and scale (need ≥ {MIN_SIMILARITY_PX} px per side); "
-                             "use a larger align window")
+    ref, mov = grey_pair(reference, moving, min_px=MIN_SIMILARITY_PX,
+                         purpose="registering rotation and scale")
     lo, hi = (float(v) for v in scale_range)
     if not 0 < lo <= 1.0 <= hi:
         raise ValueError(f"scale_range must satisfy 0 < min <= 1 <= max, got {scale_range}")

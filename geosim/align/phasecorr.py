@@ -136,6 +136,28 @@ class PhaseCorrelation:
 # --------------------------------------------------------------------------- helpers
 
 
+def grey_pair(reference: np.ndarray, moving: np.ndarray, *, min_px: int, purpose: str
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Grey versions of a reference/moving pair, checked to be equal-shaped and large enough.
+
+    Raises
+    ------
+    RasterError
+        The two windows differ in shape.
+    AlignmentError
+        A side is shorter than ``min_px`` pixels (too small for ``purpose``).
+    """
+    ref = as_grey(reference, "reference")
+    mov = as_grey(moving, "moving")
+    if ref.shape != mov.shape:
+        raise RasterError(f"reference {ref.shape} and moving {mov.shape} windows differ in "
+                          "shape; cut windows of the same size from both")
+    if min(ref.shape) < min_px:
+        raise AlignmentError(f"window of {ref.shape[0]}×{ref.shape[1]} px is too small for "
+                             f"{purpose} (need ≥ {min_px} px per side); use a larger window")
+    return ref, mov
+
+
 def as_grey(image: np.ndarray, what: str = "image") -> np.ndarray:
     """Return a float32 2-D grey image from a 2-D or bands-first 3-D array.
 
@@ -555,15 +577,7 @@ def phase_correlate(reference: np.ndarray, moving: np.ndarray, *,
     >>> [round(v, 2) for v in pc.shift_px]
     [-3.0, 2.0]
     """
-    ref = as_grey(reference, "reference")
-    mov = as_grey(moving, "moving")
-    if ref.shape != mov.shape:
-        raise RasterError(f"reference {ref.shape} and moving {mov.shape} images differ in shape; "
-                          "cut windows of the same size from both")
-    if min(ref.shape) < MIN_WINDOW_PX:
-        raise AlignmentError(f"window of {ref.shape[0]}×{ref.shape[1]} px is too small for phase "
-                             f"correlation (need ≥ {MIN_WINDOW_PX} px per side); use a larger "
-                             "window")
+    ref, mov = grey_pair(reference, moving, min_px=MIN_WINDOW_PX, purpose="phase correlation")
     if upsample_factor < 1:
         raise ValueError(f"upsample_factor must be ≥ 1, got {upsample_factor}")
     vr = _valid_mask(ref, valid_reference, "reference")
