@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import importlib
+import json
 import platform
 import time
 from collections.abc import Callable, Sequence
@@ -121,7 +122,7 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path, *, only: Sequence[str] |
         "python": platform.python_version(),
         "site": site.to_dict(),
         "inputs": input_checksums(site),
-        "steps": {},
+        "steps": _earlier_steps(out / "run.json") if only else {},
         "status": "running",
     }
     total_start = time.perf_counter()
@@ -145,6 +146,8 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path, *, only: Sequence[str] |
         record["steps"][step.name] = {"status": "ok", "seconds": round(seconds, 3),
                                       "summary": summary}
         echo(f"      done in {seconds:.1f} s")
+    record["steps"] = {name: record["steps"][name] for name in STEP_NAMES
+                       if name in record["steps"]}
     record["status"] = "ok"
     record["seconds"] = round(time.perf_counter() - total_start, 3)
     record["finished"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
@@ -152,11 +155,30 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path, *, only: Sequence[str] |
     return record
 
 
+def _earlier_steps(run_json: Path) -> dict[str, Any]:
+    """Step records of an earlier run in the same folder, kept when only some steps rerun.
+
+    Each kept record is marked ``"from_earlier_run": true``; an unreadable file is ignored
+    (the new run.json replaces it).
+    """
+    try:
+        earlier = json.loads(run_json.read_text())
+    except (OSError, ValueError):
+        return {}
+    steps = earlier.get("steps") if isinstance(earlier, dict) else None
+    if not isinstance(steps, dict):
+        return {}
+    return {name: {**info, "from_earlier_run": True} for name, info in steps.items()
+            if name in STEP_NAMES and isinstance(info, dict)}
+
+
 def format_summary(record: dict[str, Any]) -> str:
     """A short human summary of a run record: what was written and the key numbers."""
     lines = [f"geosim {record['geosim_version']}: {record['status']} in "
              f"{record.get('seconds', 0):.1f} s"]
     for name, info in record["steps"].items():
+        if info.get("from_earlier_run"):
+            continue  # only what this invocation did
         if info["status"] != "ok":
             lines.append(f"  {name:<11} {info['status']}: "
                          f"{info.get('reason') or info.get('error', '')}")

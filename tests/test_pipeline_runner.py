@@ -58,3 +58,19 @@ def test_only_selects_steps_in_order(fake_steps: list[str]) -> None:
     assert [s.name for s in select_steps(["two", "one"])] == ["one", "two"]
     with pytest.raises(ConfigError, match="unknown step"):
         select_steps(["three"])
+
+
+def test_partial_run_keeps_earlier_step_records(tmp_path: Path, fake_steps: list[str],
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    img = write_raster(tmp_path / "a.tif", textured_rgb(32, 32))
+    site = site_from_images([img], None)
+    out = tmp_path / "out"
+    monkeypatch.setattr("geosim.pipeline.STEPS", (Step("one", "fake_steps", "ok"),
+                                                  Step("two", "fake_steps", "ok")))
+    monkeypatch.setattr("geosim.pipeline.STEP_NAMES", ("one", "two"))
+    run_pipeline(site, out, echo=lambda s: None)
+    first = json.loads((out / "run.json").read_text())["steps"]
+    record = run_pipeline(site, out, only=["two"], echo=lambda s: None)
+    assert list(record["steps"]) == ["one", "two"]
+    assert record["steps"]["one"] == {**first["one"], "from_earlier_run": True}
+    assert "from_earlier_run" not in record["steps"]["two"]
