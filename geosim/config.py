@@ -107,6 +107,10 @@ class Parameters:
         Labels clipped by a tile edge are dropped below this visible fraction.
     footprint_simplify_m
         Tolerance for simplifying traced footprints, metres.
+    q
+        Fixed Q for the degradation (dimensionless). Unset (default): degrade with the
+        mean Q calibrated against the satellite scene. Set it for a site without a
+        satellite scene, or to simulate another camera; calibration still reports its Q.
     """
 
     uav_gsd_m: float = 0.05
@@ -119,6 +123,7 @@ class Parameters:
     q_max: float = 8.0
     min_visible_fraction: float = 0.5
     footprint_simplify_m: float = 0.5
+    q: float | None = None
 
     def __post_init__(self) -> None:
         positive = ("uav_gsd_m", "sat_gsd_m", "tile_px", "align_window_px", "q_min",
@@ -126,6 +131,8 @@ class Parameters:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"parameters.{name} = {getattr(self, name)!r} must be > 0")
+        if self.q is not None and not (math.isfinite(self.q) and self.q > 0):
+            raise ConfigError(f"parameters.q = {self.q!r} must be a positive number (e.g. 4.34)")
         if self.q_min >= self.q_max:
             raise ConfigError(f"parameters.q_min = {self.q_min} must be below q_max = {self.q_max}")
         if not 0.0 <= self.min_visible_fraction <= 1.0:
@@ -280,6 +287,8 @@ def _parameters(table: Mapping[str, Any], src: Path) -> Parameters:
     values: dict[str, Any] = {}
     for key, value in table.items():
         default = getattr(Parameters, key)
+        if default is None:  # optional numbers (q)
+            default = 0.0
         if isinstance(default, bool):
             ok = isinstance(value, bool)
         elif isinstance(default, int):

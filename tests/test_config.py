@@ -94,3 +94,12 @@ def test_site_from_images_makes_unique_ids(tmp_path: Path) -> None:
     site = site_from_images([a, b], None, tile_px=100)
     assert site.flight_ids == ("a", "a_2")
     assert site.parameters.tile_px == 100
+
+
+def test_fixed_q_parameter(tmp_path: Path) -> None:
+    site = load_site(_site(tmp_path, GOOD.replace("tile_px = 500", "tile_px = 500\nq = 4.34")))
+    assert site.parameters.q == 4.34
+    assert Parameters().q is None
+    for bad in ('q = "high"', "q = -1.0", "q = 0"):
+        with pytest.raises(ConfigError, match="parameters.q"):
+            load_site(_site(tmp_path, GOOD.replace("tile_px = 500", f"tile_px = 500\n{bad}")))

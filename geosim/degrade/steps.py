@@ -306,8 +306,9 @@ def read_calibrated_q(out_dir: str | Path) -> float:
     """Mean Q from ``out_dir/calibration.json``."""
     path = Path(out_dir) / CALIBRATION_JSON
     if not path.is_file():
-        raise InputFileError(f"{path} not found; run 'geosim calibrate' first, or give Q "
-                             "explicitly (geosim degrade ... --q 4.34)")
+        raise InputFileError(f"{path} not found; run 'geosim calibrate' first (it needs a "
+                             "[satellite] scene), or give Q explicitly: set q = 4.34 under "
+                             "[parameters] in the site file, or geosim degrade ... --q 4.34")
     try:
         doc = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
@@ -387,7 +388,8 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
     out_dir
         Run folder with ``tiles/<flight>/<tile>.tif``; writes ``degraded/<flight>/<tile>.tif``.
     q
-        Q to use; None = the mean calibrated Q from ``calibration.json``.
+        Q to use; None = the site's ``parameters.q`` when set, else the mean calibrated
+        Q from ``calibration.json``.
     method
         ``"fast"`` (default) or ``"reference"`` (the paper's literal operation).
     obscuration
@@ -404,7 +406,9 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
         raise ConfigError(f"method {method!r} is not one of {', '.join(METHODS)}")
     if not 0.0 <= obscuration < 1.0:
         raise ConfigError(f"obscuration = {obscuration} must be a diameter ratio in [0, 1)")
-    if q is None:
+    if q is None and p.q is not None:
+        q, q_source = p.q, "site parameters.q"
+    elif q is None:
         q, q_source = read_calibrated_q(out), CALIBRATION_JSON
     else:
         q_source = "user"

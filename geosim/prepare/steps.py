@@ -21,7 +21,7 @@ from affine import Affine
 from rasterio.windows import Window
 
 from geosim.config import SiteConfig
-from geosim.errors import AlignmentError, InputFileError
+from geosim.errors import AlignmentError, ExtentError, InputFileError
 from geosim.io.atomic import write_json, write_text
 from geosim.io.raster import open_raster, provenance_tags
 from geosim.io.vector import write_geojson, write_gpkg
@@ -478,6 +478,13 @@ def run_tiles(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     coverage = {fid: [window_coverage(path, t.window) for t in tiles]
                 for fid, path in apath.items()}
     selected = select_tiles(tiles, coverage, keep_partial=p.keep_partial_tiles)
+    if not selected:  # refuse before anything is written: an empty tile set helps nobody
+        size_m = p.tile_px * p.uav_gsd_m
+        why = (f"none of the {len(tiles)} tile(s) is fully covered by every flight's valid "
+               "data" if tiles else "the aligned common extent is smaller than one tile")
+        raise ExtentError(f"{site.path or 'site'}: no tiles of {p.tile_px} px ({size_m:g} m): "
+                          f"{why}; set a smaller parameters.tile_px (a multiple of "
+                          f"{p.phi}) or keep_partial_tiles = true")
     from tqdm import tqdm
 
     params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles}
