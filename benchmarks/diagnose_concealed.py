@@ -241,9 +241,10 @@ def main() -> None:
 
 
 def sample_site() -> dict | None:
-    """Diagnose the bundled sample site (flight PA1 vs its satellite scene) and compare with
-    truth.json. The flight has its own georeference error and the scene really changed
-    (cattle moved, other sun, other date), so this is the realistic case."""
+    """Diagnose the bundled sample site (flights PA1, PA2, PA3 vs its satellite scene; PA1 is
+    the reference) and compare the combined verdict with truth.json. Each flight has its own
+    georeference error and the scene really changed (cattle moved, other sun, other date),
+    so this is the realistic case."""
     samples = ROOT / "data" / "samples"
     if not (samples / "truth.json").is_file():
         print("sample site not generated; skipped")
@@ -256,8 +257,8 @@ def sample_site() -> dict | None:
     truth = json.loads((samples / "truth.json").read_text())
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.time()
-        diagnose_images([samples / "flights" / "PA1.tif"], samples / "satellite" / "satellite.tif",
-                        tmp)
+        diagnose_images([samples / "flights" / f"{f}.tif" for f in ("PA1", "PA2", "PA3")],
+                        samples / "satellite" / "satellite.tif", tmp)
         doc = json.loads((Path(tmp) / "diagnosis.json").read_text())
     rows = compare_with_truth(doc, truth)
     # what the sample's truth implies for the comparison with flight PA1
@@ -273,14 +274,21 @@ def sample_site() -> dict | None:
             round(sat["misregistration"]["shift_m"][0] + ge["shift_m"][0], 3),
             round(sat["misregistration"]["shift_m"][1] + ge["shift_m"][1], 3)],
         "rotation_deg": ge["rotation_deg"], "scale": ge["scale"]}
-    print("\nSample site (PA1 vs satellite), fitted vs truth.json:")
+    print("\nSample site (PA1, PA2, PA3 vs satellite; combined verdict), fitted vs truth.json:")
     print(format_truth_comparison(rows))
     print("implied by truth for PA1:", implied)
     print(f"baseline Q {doc['baseline']['q']:.2f} -> refined Q {doc['refined']['q']:.2f}; RMSE "
           f"{doc['baseline']['rmse']:.2f} -> {doc['refined']['rmse']:.2f}; spectral error "
           f"{doc['baseline']['spectral_error']:.3f} -> {doc['refined']['spectral_error']:.3f}; "
           f"ambiguities {[a['note'] for a in doc['ambiguities']]}; {time.time() - t0:.0f} s")
+    for f, d in doc["flights"].items():
+        print(f"  {f}: Q {d['baseline']['q']:.2f} -> {d['refined']['q']:.2f}; claimed "
+              f"{[e['name'] for e in d['effects']]}; spectral error "
+              f"{d['baseline']['spectral_error']:.3f} -> {d['refined']['spectral_error']:.3f}")
     return {"rows": rows, "implied": implied, "baseline": doc["baseline"],
+            "flights": {f: {"baseline": d["baseline"], "refined": d["refined"],
+                            "effects": {e["name"]: e["params"] for e in d["effects"]}}
+                        for f, d in doc["flights"].items()},
             "refined": doc["refined"], "ambiguities": doc["ambiguities"],
             "candidates_delta_bic": doc["candidates_delta_bic"]}
 

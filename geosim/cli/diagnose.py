@@ -12,7 +12,8 @@ from geosim.errors import ConfigError
 @click.command()
 @click.argument("site_file", required=False, type=click.Path(path_type=Path))
 @click.option("--uav", "uav", multiple=True, type=click.Path(path_type=Path),
-              help="UAV orthomosaic GeoTIFF (any CRS); repeatable. The first is diagnosed.")
+              help="UAV orthomosaic GeoTIFF (any CRS); repeatable. Every one that overlaps the "
+                   "satellite is diagnosed; the first is the reference.")
 @click.option("--satellite", "satellite", type=click.Path(path_type=Path),
               help="Real satellite scene GeoTIFF (any CRS).")
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path),
@@ -45,9 +46,19 @@ def diagnose(site_file: Path | None, uav: tuple[Path, ...], satellite: Path | No
                               "--satellite; see geosim diagnose --help")
         summary = diagnose_images(list(uav), satellite, out, uav_gsd_m=uav_gsd_m,
                                   sat_gsd_m=sat_gsd_m, seed=seed)
+    flights = summary.get("flights", {})
+    if len(flights) > 1:
+        click.echo(f"{len(flights)} flights diagnosed; combined (majority) verdict:")
     click.echo(f"baseline Q {summary['q_base']:.2f} -> refined Q {summary['q_refined']:.2f}")
     for name, params in summary["effects"].items():
         click.echo(f"  {name}: {params}")
     click.echo(f"RMSE {summary['rmse'][0]:.2f} -> {summary['rmse'][1]:.2f} DN; spectral error "
                f"{summary['spectral_error'][0]:.3f} -> {summary['spectral_error'][1]:.3f}")
-    click.echo(f"outputs in {summary['out']}/ (diagnosis.json, report.md)")
+    if len(flights) > 1:
+        for f, d in flights.items():
+            click.echo(f"  flight {f}: Q {d['q_base']:.2f} -> {d['q_refined']:.2f}; claimed "
+                       + (", ".join(d["claimed"]) or "none"))
+    for f, why in summary.get("flights_skipped", {}).items():
+        click.echo(f"  flight {f} skipped: {why}")
+    click.echo(f"outputs in {summary['out']}/ (diagnosis.json, report.md; per flight in "
+               "<flight>/)")

@@ -28,6 +28,7 @@ from geosim.diagnose.fit import (
     build_spectral_data,
     fit_noise,
     fit_radiometry,
+    fit_transfer,
 )
 from geosim.diagnose.select import MIN_DELTA_BIC, select_blur, select_radiometry
 from geosim.diagnose.spectra import (
@@ -466,26 +467,48 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
                      "n_blocks": full.n_blocks, "held_out": halves[0] is not None,
                      "blocks_screened_out": n_screened},
     }
-    # maps ------------------------------------------------------------------------
+    # maps (against the co-registered baseline, so that a global shift does not show up as
+    # local blur or loss of gain everywhere) --------------------------------------------
+    bg_al = _grey(sim_at(q_base))  # baseline after co-registration
     maps = {
         "residual_energy": np.where(valid, energy, np.nan),
-        "blur_ratio": locate.local_blur_ratio(bg, rg, valid=valid),
+        "blur_ratio": locate.local_blur_ratio(bg_al, rg, valid=valid),
     }
-    gmap, omap = locate.local_gain_offset(bg, rg, valid=valid)
+    gmap, omap = locate.local_gain_offset(bg_al, rg, valid=valid)
     maps["gain"], maps["offset"] = gmap, omap
     # plot data -------------------------------------------------------------------
-    bg_al = _grey(sim_at(q_base))  # baseline after co-registration
-    cs_b = cross_spectrum(bg_al, rg, block_px=block_px, origins=ev_origins)
-    cs_f = cross_spectrum(_grey(refined_det), rg, block_px=block_px, origins=ev_origins)
-    fy, fx = cs_b.fy, cs_b.fx
-    t_real = np.abs(full_transfer(sims_grey[0], rg, block_px, ev_origins))
-    g_base = np.abs(full_transfer(sims_grey[0], bg_al, block_px, ev_origins))
-    g_ref = np.abs(full_transfer(sims_grey[0], _grey(refined_det), block_px, ev_origins))
-    plots = {"fy": fy, "fx": fx, "t_real": t_real, "t_base": g_base, "t_refined": g_ref,
-             "coherence_base": cs_b.coherence, "coherence_refined": cs_f.coherence,
+    # Transfer functions, all on the fit's Welch blocks and relative to the sharpest
+    # simulation: the real scene's H1 = S_rs/S_ss, and the models *as fitted to it*, i.e.
+    # times the broadband gain g of the spectral fit. g (< 1) holds the contrast loss of the
+    # radiometry (haze) and the coherence loss from content the two images do not share
+    # (other shadows, moved cattle, sub-pixel local shifts), which lowers H1 at all
+    # frequencies; without it the model curves would sit above the real one although they
+    # fit it (see the README's note on this plot).
+    g_base = fit_transfer(full, [], fix_q=float(np.clip(q_base, q_grid[0], q_grid[-1]))).gain
+    cs_real = cross_spectrum(sims_grey[0], rg, block_px=block_px, origins=origins)
+    fy, fx = cs_real.fy, cs_real.fx
+    t_real = np.abs(cs_real.transfer)
+    t_var = (1.0 - np.clip(cs_real.coherence, 1e-6, 1 - 1e-9)) / (
+        2.0 * cs_real.n_blocks * np.clip(cs_real.coherence, 1e-6, 1.0)) * t_real**2
+    g_base_t = g_base * np.abs(full_transfer(sims_grey[0], bg_al, block_px, origins))
+    blur_only = _grey(det_model(fin.q, fin.effects))
+    g_ref_t = fin.gain * np.abs(full_transfer(sims_grey[0], blur_only, block_px, origins))
+    # power spectra of the images as delivered (what spectral_error compares)
+    delivered_base = np.round(base) if quantized else base
+    p_real = cross_spectrum(rg, rg, block_px=block_px, origins=ev_origins).s_ss
+    p_base = cross_spectrum(_grey(delivered_base), rg, block_px=block_px,
+                            origins=ev_origins).s_ss
+    p_ref = cross_spectrum(_grey(np.round(refined) if quantized else refined), rg,
+                           block_px=block_px, origins=ev_origins).s_ss
+    plots = {"fy": fy, "fx": fx, "t_real": t_real, "t_real_var": t_var, "t_base": g_base_t,
+             "t_refined": g_ref_t, "gain_base": float(g_base), "gain_refined": float(fin.gain),
+             "coherence_base": cs_real.coherence,
+             "p_real": p_real, "p_base": p_base, "p_refined": p_ref,
+             "spectral_error": (base_se, ref_se),
              "noise_brightness": nf.brightness_dn, "noise_variance": nf.variance_dn2,
              "noise_model": (nf.gain_dn, nf.read_var_dn2 + nf.quantization_dn2),
-             "q_ref": float(q_grid[0])}
+             "noise_claimed": bool(noisy), "quantized": bool(quantized),
+             "q_ref": float(q_grid[0]), "q_base": float(q_base), "q_refined": float(fin.q)}
     f, prof = radial_profile(t_real, fy, fx)
     plots["radial_f"] = f
     plots["radial_real"] = prof

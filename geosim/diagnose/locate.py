@@ -62,12 +62,15 @@ def _expand(blocks: np.ndarray, block_px: int, shape: tuple[int, int]) -> np.nda
 
 def local_blur_ratio(sim_grey: np.ndarray, real_grey: np.ndarray, *, block_px: int = 16,
                      valid: np.ndarray | None = None) -> np.ndarray:
-    """Per-block LV(real) / LV(sim), expanded to the grid (NaN where invalid)."""
+    """Per-block LV(real) / LV(sim), expanded to the grid (NaN where invalid or where a
+    block is not wholly valid). ``sim_grey`` should be co-registered with ``real_grey``."""
     ls = ndimage.convolve(np.asarray(sim_grey, float), _LAPLACIAN, mode="reflect")
     lr = ndimage.convolve(np.asarray(real_grey, float), _LAPLACIAN, mode="reflect")
     vs = _block_view(ls, block_px).var(axis=(2, 3))
     vr = _block_view(lr, block_px).var(axis=(2, 3))
     ratio = vr / np.maximum(vs, 1e-9)
+    if valid is not None:  # blocks that reach outside the valid area mean nothing
+        ratio[~_block_view(np.asarray(valid), block_px).all(axis=(2, 3))] = np.nan
     out = _expand(ratio, block_px, sim_grey.shape)
     if valid is not None:
         out[~valid] = np.nan
@@ -75,8 +78,14 @@ def local_blur_ratio(sim_grey: np.ndarray, real_grey: np.ndarray, *, block_px: i
 
 
 def local_gain_offset(sim_grey: np.ndarray, real_grey: np.ndarray, *, block_px: int = 16,
-                      valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Per-block least-squares gain and offset (DN) of real on simulated grey levels."""
+                      valid: np.ndarray | None = None, min_rho: float = 0.5
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-block least-squares gain and offset (DN) of real on simulated grey levels (NaN
+    where a block is not wholly valid). ``sim_grey`` should be co-registered with
+    ``real_grey``: a shift decorrelates blocks and drags the gain toward 0. Blocks whose
+    correlation coefficient is below ``min_rho`` are NaN too: there the two images do not
+    show the same content (other shadows, moved cattle) or too little contrast, and a
+    regression slope is dominated by what they do not share (regression dilution)."""
     s = _block_view(np.asarray(sim_grey, float), block_px)
     r = _block_view(np.asarray(real_grey, float), block_px)
     sm = s.mean(axis=(2, 3), keepdims=True)
@@ -85,6 +94,13 @@ def local_gain_offset(sim_grey: np.ndarray, real_grey: np.ndarray, *, block_px: 
     var = ((s - sm) ** 2).mean(axis=(2, 3))
     gain = cov / np.maximum(var, 1e-9)
     offset = rm[..., 0, 0] - gain * sm[..., 0, 0]
+    rho = cov / np.sqrt(np.maximum(var * ((r - rm) ** 2).mean(axis=(2, 3)), 1e-18))
+    gain[rho < min_rho] = np.nan
+    offset[rho < min_rho] = np.nan
+    if valid is not None:  # blocks that reach outside the valid area mean nothing
+        whole = _block_view(np.asarray(valid), block_px).all(axis=(2, 3))
+        gain[~whole] = np.nan
+        offset[~whole] = np.nan
     g = _expand(gain, block_px, sim_grey.shape)
     o = _expand(offset, block_px, sim_grey.shape)
     if valid is not None:

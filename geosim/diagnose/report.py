@@ -10,11 +10,13 @@ from affine import Affine
 from rasterio.crs import CRS
 
 from geosim.diagnose.engine import Diagnosis
-from geosim.diagnose.spectra import directional_profiles, radial_profile
+from geosim.diagnose.fit import HANN_CORRELATION
+from geosim.diagnose.spectra import directional_profiles, polar_bin_mean, radial_profile
 from geosim.io.atomic import atomic_path, write_json, write_text
 from geosim.io.raster import provenance_tags, write_geotiff
 
-__all__ = ["write_diagnosis", "FILES", "compare_with_truth", "format_truth_comparison"]
+__all__ = ["write_diagnosis", "write_combined", "FILES", "compare_with_truth",
+           "format_truth_comparison"]
 
 FILES = {"satellite": "satellite_on_grid.tif", "baseline": "sim_baseline.tif",
          "refined": "sim_refined.tif"}
@@ -51,68 +53,119 @@ def _plots(diag: Diagnosis, out: Path) -> list[str]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
 
     p = diag.plots
     fy, fx = p["fy"], p["fx"]
     n_rad = max(4, min(16, fy.shape[0] // 2 - 1))  # no finer than the block's FFT grid
     written = []
-    # transfer functions, radial and by direction
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    for key, lab, st in (("t_real", "real scene", "k-"),
-                         ("t_base", "baseline (paper model)", "C0--"),
-                         ("t_refined", "refined model", "C3-")):
-        f, m = radial_profile(p[key], fy, fx, n_bins=n_rad)
-        axes[0].plot(f, m, st, label=lab)
-    f, c = radial_profile(p["coherence_base"], fy, fx, n_bins=n_rad)
-    axes[0].plot(f, c, "C2:", label="coherence real vs baseline")
-    axes[0].set_xlabel("spatial frequency (cycles per 0.5 m pixel)")
-    axes[0].set_ylabel(f"|transfer| relative to paper model at Q={p['q_ref']:.2f}")
-    axes[0].legend(fontsize=8)
-    axes[0].set_title("Radial transfer function")
+    # 1. transfer functions: radial, by direction (relative to the baseline), power spectra
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    ax = axes[0]
+    f, _, m_real, cnt = polar_bin_mean(p["t_real"], fy, fx, n_radial=n_rad)
+    _, _, v_real, _ = polar_bin_mean(p["t_real_var"], fy, fx, n_radial=n_rad)
+    # σ of a bin mean: var / (samples / Hann spread); both half-planes hold the same values
+    sig = np.sqrt(v_real[0] * HANN_CORRELATION / np.maximum(cnt[0] / 2.0, 1.0))
+    ax.fill_between(f, m_real[0] - sig, m_real[0] + sig, color="0.8", label="real ±1σ")
+    ax.plot(f, m_real[0], "k-", label="real scene (cross-spectral H1)")
+    for key, lab, st in (("t_base", f"baseline, Q={p['q_base']:.2f}, × g={p['gain_base']:.2f}",
+                          "C0--"),
+                         ("t_refined", f"refined, Q={p['q_refined']:.2f} + effects, "
+                          f"× g={p['gain_refined']:.2f}", "C3-")):
+        fb, mb = radial_profile(p[key], fy, fx, n_bins=n_rad)
+        ax.plot(fb, mb, st, label=lab)
+    fc, c = radial_profile(p["coherence_base"], fy, fx, n_bins=n_rad)
+    ax.plot(fc, c, "C2:", label="coherence γ² (real vs simulation)")
+    ax.set_xlabel("spatial frequency (cycles per 0.5 m pixel)")
+    ax.set_ylabel(f"|transfer| relative to the paper model at Q={p['q_ref']:.2f}")
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=7)
+    ax.set_title("Radial transfer function (models as fitted)", fontsize=10)
+    ax = axes[1]
     n_dir = max(4, n_rad * 3 // 4)
-    f, ang, mr = directional_profiles(p["t_real"], fy, fx, n_sectors=4, n_bins=n_dir)
-    _, _, mf = directional_profiles(p["t_refined"], fy, fx, n_sectors=4, n_bins=n_dir)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rr = p["t_real"] / p["t_base"]
+        rf = p["t_refined"] / p["t_base"]
+    f, ang, mr = directional_profiles(rr, fy, fx, n_sectors=4, n_bins=n_dir)
+    _, _, mf = directional_profiles(rf, fy, fx, n_sectors=4, n_bins=n_dir)
     for i, a in enumerate(ang):
-        axes[1].plot(f, mr[i], f"C{i}-", label=f"real, {a:.0f}° from north")
-        axes[1].plot(f, mf[i], f"C{i}--")
-    axes[1].set_xlabel("spatial frequency (cycles per pixel)")
-    axes[1].set_title("By direction (solid real, dashed refined)")
-    axes[1].legend(fontsize=8)
+        ax.plot(f, mr[i], f"C{i}-", label=f"real, wave vector {a:.0f}° from north")
+        ax.plot(f, mf[i], f"C{i}--")
+    ax.axhline(1.0, color="0.5", lw=0.8)
+    ax.set_xlabel("spatial frequency (cycles per pixel)")
+    ax.set_ylabel("|transfer| / baseline model")
+    ax.set_title("By direction, relative to the baseline (solid real, dashed refined)",
+                 fontsize=10)
+    ax.legend(fontsize=7)
+    ax = axes[2]
+    se_b, se_r = p["spectral_error"]
+    for key, lab, st in (("p_real", "real scene", "k-"),
+                         ("p_base", f"baseline (spectral error {se_b:.3f})", "C0--"),
+                         ("p_refined", f"refined, with noise (spectral error {se_r:.3f})",
+                          "C3-")):
+        fp_, mp = radial_profile(p[key], fy, fx, n_bins=n_rad)
+        ax.semilogy(fp_, mp, st, label=lab)
+    ax.set_xlabel("spatial frequency (cycles per pixel)")
+    ax.set_ylabel("power spectrum (DN², grey level)")
+    ax.set_title("Power spectra of the images as delivered", fontsize=10)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(out / "transfer_function.png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+        fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
     written.append("transfer_function.png")
-    # noise vs brightness
+    # 2. noise vs brightness
     fig, ax = plt.subplots(figsize=(5.5, 4))
     if len(p["noise_brightness"]):
-        ax.plot(p["noise_brightness"], p["noise_variance"], "ko", label="residual (high-pass)")
+        ax.plot(p["noise_brightness"], p["noise_variance"], "ko",
+                label="residual variance (high-passed, per brightness bin)")
         s = np.linspace(0, max(p["noise_brightness"]) * 1.05, 50)
         a, b = p["noise_model"]
-        ax.plot(s, a * s + b, "C3-", label=f"fit var = {a:.3g}·s + {b:.3g}")
-    ax.set_xlabel("brightness (DN)")
+        extra = " (b includes 1/12 DN² of rounding)" if p.get("quantized") else ""
+        ax.plot(s, a * s + b, "C3-", label=f"fit var = {a:.3g}·s + {b:.3g}{extra}")
+    ax.set_xlim(left=0)
+    ax.set_ylim(bottom=0)
+    ax.set_xlabel("model brightness s (DN, per band)")
     ax.set_ylabel("noise variance (DN²)")
-    ax.legend(fontsize=8)
+    ax.set_title("sensor_noise " + ("claimed" if p.get("noise_claimed") else "not claimed"),
+                 fontsize=10)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(out / "noise_vs_brightness.png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
     written.append("noise_vs_brightness.png")
-    # maps
+    # 3. maps
     fig, axes = plt.subplots(1, 4, figsize=(16, 4))
-    for ax, (k, title) in zip(axes, (("residual_energy", "residual energy (DN²)"),
-                                     ("blur_ratio", "LV real / LV baseline"),
-                                     ("gain", "local gain"), ("offset", "local offset (DN)")),
-                              strict=True):
-        im = ax.imshow(diag.maps[k], cmap="magma" if k == "residual_energy" else "viridis")
-        ax.set_title(title)
+    for ax, (k, title) in zip(axes, (("residual_energy", "residual energy after refit (DN², log)"),
+                                     ("blur_ratio", "LV real / LV baseline (log)"),
+                                     ("gain", "local gain real vs baseline"),
+                                     ("offset", "local offset (DN)")), strict=True):
+        img = diag.maps[k]
+        fin = img[np.isfinite(img)]
+        if k in ("residual_energy", "blur_ratio") and fin.size and np.any(fin > 0):
+            pos = fin[fin > 0]
+            lo, hi = np.percentile(pos, [1, 99.5])
+            if k == "blur_ratio":  # symmetric about 1 on a log scale
+                span = max(hi, 1.0 / max(lo, 1e-6), 1.01)
+                lo, hi = 1.0 / span, span
+            im = ax.imshow(np.where(img > 0, img, np.nan),
+                           norm=LogNorm(vmin=max(lo, 1e-6), vmax=max(hi, lo * 1.01)),
+                           cmap="magma" if k == "residual_energy" else "RdBu_r")
+        else:
+            lo, hi = (np.percentile(fin, [2, 98]) if fin.size else (0.0, 1.0))
+            im = ax.imshow(img, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-6))
+        ax.set_title(title, fontsize=10)
         ax.set_axis_off()
         fig.colorbar(im, ax=ax, fraction=0.046)
     for r in diag.regions[:20]:
         r0, c0, r1, c1 = r.bbox
         axes[0].add_patch(plt.Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0, r1 - r0, fill=False,
                                         ec="cyan" if r.kind == "scene_change" else "white"))
-    fig.tight_layout()
+    fig.text(0.01, 0.01, "boxes: regions (cyan scene_change, white global); maps 2–4 in blocks "
+             "of 16 px against the co-registered baseline (gain/offset blank where the block "
+             "correlation < 0.5); colour limits at robust percentiles", fontsize=8)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
     with atomic_path(out / "mismatch_maps.png") as tmp:
         fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
@@ -293,3 +346,146 @@ def format_truth_comparison(rows: list[dict[str, Any]]) -> str:
         truth = "not present" if r["truth"] is None else _f(r["truth"])
         lines.append(f"{r['effect']}\n    fitted: {fitted}\n    truth:  {truth}")
     return "\n".join(lines)
+
+
+def _copy_atomic(src: Path, dst: Path) -> None:
+    import shutil
+
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+
+
+def _combined_markdown(doc: dict[str, Any], per: dict[str, dict[str, Any]],
+                       dirs: dict[str, str]) -> str:
+    b, rf = doc["baseline"], doc["refined"]
+    comb = doc["combination"]
+    ids = comb["flights"]
+    lines = ["# Diagnosis: where the paper's model and the real satellite scene differ", ""]
+    lines.append(f"{len(ids)} flight(s) were diagnosed against the satellite scene "
+                 f"({', '.join(ids)}; reference {doc['reference_flight']}). Each flight is an "
+                 "independent simulation of the same scene: the satellite's physics is "
+                 f"claimed when a majority of flights ({comb['votes_needed']} of {len(ids)}) "
+                 "claims it; misregistration and scene change belong to each flight.")
+    if doc.get("flights_skipped"):
+        lines.append("")
+        for f, why in doc["flights_skipped"].items():
+            lines.append(f"- Flight {f} was not diagnosed: {why}")
+    lines.append("")
+    lines.append(f"The baselines (the paper's model, Q by Laplacian variance; median Q "
+                 f"{b['q']:.2f}) have a median RMSE of {b['rmse']:.2f} DN and spectral error "
+                 f"{b['spectral_error']:.3f}.")
+    sat = [e for e in doc["effects"] if e.get("scope") == "satellite"]
+    lines.append("")
+    if not sat:
+        lines.append("**No missing satellite physics was found**: no effect was claimed by a "
+                     "majority of flights.")
+    else:
+        lines.append("## Physics the model left out (combined over flights)")
+        lines.append("")
+        for e in sat:
+            params = ", ".join(f"{k} = {_f(v)}" for k, v in e["params"].items())
+            unc = ", ".join(f"{k} ± {_f(v)}" for k, v in e["uncertainty"].items()
+                            if v is not None)
+            lines.append(f"- **{e['name']}** ({params}; {unc}, {e['uncertainty_kind']}). "
+                         f"{e['explanation'].split(' Fitted:')[0]} Claimed in "
+                         f"{e['votes']} flights ({', '.join(e['flights_claimed'])}); median "
+                         f"ΔBIC {_f(e['delta_bic'])}.")
+            lines.append("  - Per flight: " + "; ".join(
+                f"{f}: " + ", ".join(f"{k} = {_f(v)}" for k, v in pp.items())
+                for f, pp in e["params_by_flight"].items()) + ".")
+            if e.get("indistinguishable_from"):
+                lines.append(f"  - Caution: it cannot be told apart from "
+                             f"{', '.join(e['indistinguishable_from'])} on these data.")
+    if doc.get("not_carried"):
+        lines.append("\nClaimed in some flights but not carried by the majority (not claimed "
+                     "for the satellite): "
+                     + ", ".join(f"{k} ({v['votes']}: {', '.join(v['flights_claimed'])})"
+                                 for k, v in doc["not_carried"].items()) + ".")
+    lines.append(f"\n## Refit\n\nThe refitted Q is {rf['q']:.2f} ± {rf['q_sigma']:.2f} "
+                 f"({rf['q_sigma_kind']}; per flight "
+                 + ", ".join(f"{f} {q:.2f}" for f, q in rf["q_by_flight"].items()) + "); it is "
+                 + ("**within**" if rf["q_in_physical_range"] else "**outside**")
+                 + f" the physical range {rf['physical_q_range'][0]}–"
+                 f"{rf['physical_q_range'][1]} of real cameras. Median RMSE {b['rmse']:.2f} → "
+                 f"{rf['rmse']:.2f} DN; median spectral error {b['spectral_error']:.3f} → "
+                 f"{rf['spectral_error']:.3f}.")
+    lines.append("\n## Per flight\n")
+    lines.append("| flight | baseline Q → refined Q | claimed | RMSE DN | spectral error |")
+    lines.append("|---|---|---|---|---|")
+    for f in ids:
+        d = per[f]
+        lines.append(f"| {f} | {d['baseline']['q']:.2f} → {d['refined']['q']:.2f} | "
+                     + (", ".join(e["name"] for e in d["effects"]) or "—")
+                     + f" | {d['baseline']['rmse']:.2f} → {d['refined']['rmse']:.2f} | "
+                     f"{d['baseline']['spectral_error']:.3f} → "
+                     f"{d['refined']['spectral_error']:.3f} |")
+    for name, by in doc.get("per_flight_effects", {}).items():
+        lines.append(f"\n{name} (per flight): "
+                     + "; ".join(f"{f}: {_f(p)}" for f, p in by.items()) + ".")
+    lines.append("\nThe top-level GeoTIFFs, maps and plots are the reference flight's; every "
+                 "flight's full diagnosis (report, maps, plots, regions) is in its folder: "
+                 + ", ".join(f"`{dirs[f]}/`" for f in ids) + ". `regions.geojson` holds the "
+                 "regions of all flights (attribute `flight`).")
+    for f in ids:
+        sub = _markdown(per[f]).split("\n", 2)[2]  # drop the title
+        sub = sub.replace("\n## ", "\n#### ")
+        lines.append(f"\n### Flight {f}\n\n{sub}")
+    return "\n".join(lines) + "\n"
+
+
+def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, reference: str,
+                   dirs: dict[str, str], skipped: dict[str, str] | None = None,
+                   extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write the combined diagnosis of several flights into ``out_dir``.
+
+    ``per`` holds each flight's diagnosis dict (as returned by :func:`write_diagnosis`,
+    written to ``out_dir/dirs[flight]``). Writes ``diagnosis.json`` (the issue's schema
+    for the combined verdict, plus ``flights``), ``report.md``, ``regions.geojson`` (all
+    flights' regions, attribute ``flight``) and copies of the reference flight's
+    GeoTIFFs, maps and plots, so that ``files`` resolves at the top level.
+    """
+    import geopandas as gpd
+    import pandas as pd
+
+    from geosim.diagnose.combine import combine_flights
+    from geosim.io.vector import write_geojson, write_gpkg
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ref_dir = out / dirs[reference]
+    ref = per[reference]
+    for name in [*FILES.values(), *MAPS.values(), *ref.get("plots", [])]:
+        _copy_atomic(ref_dir / name, out / name)
+    frames = []
+    crs = None
+    for f in per:
+        path = out / dirs[f] / "regions.geojson"
+        g = gpd.read_file(path)
+        crs = crs or CRS.from_user_input(ref["grid"]["crs"])
+        if len(g):
+            g = g.to_crs(crs)
+            g.insert(0, "flight", f)
+            frames.append(g)
+    if frames:
+        gdf = gpd.GeoDataFrame(pd.concat(frames, ignore_index=True), geometry="geometry",
+                               crs=crs)
+    else:
+        gdf = gpd.GeoDataFrame({"flight": [], "rank": [], "kind": []}, geometry=[], crs=crs)
+    write_geojson(gdf, out / "regions.geojson")
+    if len(gdf):
+        write_gpkg(gdf, out / "regions.gpkg", layer="regions")
+    comb = combine_flights(per, reference=reference)
+    flights = {f: {**_jsonable(d), "dir": dirs[f]} for f, d in per.items()}
+    doc: dict[str, Any] = {
+        "grid": ref["grid"], **comb,
+        "regions": "regions.geojson",
+        "files": dict(FILES), "maps": dict(MAPS), "plots": list(ref.get("plots", [])),
+        "report": "report.md", "reference_flight": reference,
+        "flights": flights, "flights_skipped": dict(skipped or {}),
+        "n_regions": int(len(gdf)),
+    }
+    if extra:
+        doc.update(extra)
+    write_json(out / "diagnosis.json", _jsonable(doc))
+    write_text(out / "report.md", _combined_markdown(doc, per, dirs))
+    return doc

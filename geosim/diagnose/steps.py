@@ -1,11 +1,16 @@
 """File layer of the diagnosis: read grids, build the baseline, run, write.
 
 * :func:`run_diagnose` — pipeline step: reads ``out_dir/grid/satellite.tif``
-  (0.5 m shared grid), ``out_dir/aligned/<flight>.tif`` (0.05 m) and
+  (0.5 m shared grid), ``out_dir/aligned/<flight>.tif`` (0.05 m) of every flight and
   ``out_dir/calibration.json``; writes ``out_dir/diagnosis/``.
 * :func:`diagnose_images` — standalone: any-CRS UAV and satellite GeoTIFFs are
   reprojected onto a shared nested grid (UAV ``phi`` × finer) over their common
   extent, then diagnosed.
+
+Every flight that overlaps the satellite scene is diagnosed on its own (one at a time,
+so only one flight's window is in memory), into ``diagnosis/<flight>/``; the combined
+verdict (:mod:`geosim.diagnose.combine`) and copies of the reference flight's GeoTIFFs,
+maps and plots are written to ``diagnosis/`` itself.
 
 The diagnosis works on one window of at most ``max_sat_px`` × ``max_sat_px``
 satellite pixels at the centre of the common valid area (the UAV part of it is
@@ -15,6 +20,7 @@ satellite pixels at the centre of the common valid area (the UAV part of it is
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -113,14 +119,89 @@ def sim_valid(uav_valid: np.ndarray, phi: int, shape: tuple[int, int]) -> np.nda
 def _summary(doc: dict[str, Any], out: Path) -> dict[str, Any]:
     base, ref = doc["baseline"], doc["refined"]
     claimed = ", ".join(e["name"] for e in doc["effects"]) or "none"
-    text = (f"Q {base['q']:.2f} (LV) -> {ref['q']:.2f} refitted; claimed: {claimed}; "
+    flights = doc.get("flights") or {}
+    n = len(flights)
+    head = (f"{n} flights, majority verdict: " if n > 1 else "")
+    text = (f"{head}Q {base['q']:.2f} (LV) -> {ref['q']:.2f} refitted; claimed: {claimed}; "
             f"RMSE {base['rmse']:.2f} -> {ref['rmse']:.2f} DN, spectral error "
             f"{base['spectral_error']:.3f} -> {ref['spectral_error']:.3f}")
-    return {"text": text, "out": str(out), "q_base": base["q"], "q_refined": ref["q"],
-            "effects": {e["name"]: e["params"] for e in doc["effects"]},
-            "rmse": [doc["baseline"]["rmse"], doc["refined"]["rmse"]],
-            "spectral_error": [doc["baseline"]["spectral_error"],
-                               doc["refined"]["spectral_error"]]}
+    out_d: dict[str, Any] = {
+        "text": text, "out": str(out), "q_base": base["q"], "q_refined": ref["q"],
+        "effects": {e["name"]: e["params"] for e in doc["effects"]},
+        "rmse": [doc["baseline"]["rmse"], doc["refined"]["rmse"]],
+        "spectral_error": [doc["baseline"]["spectral_error"], doc["refined"]["spectral_error"]]}
+    if flights:
+        out_d["reference_flight"] = doc.get("reference_flight")
+        out_d["flights"] = {
+            f: {"q_base": d["baseline"]["q"], "q_refined": d["refined"]["q"],
+                "claimed": [e["name"] for e in d["effects"]],
+                "spectral_error": [d["baseline"]["spectral_error"],
+                                   d["refined"]["spectral_error"]]}
+            for f, d in flights.items()}
+        if doc.get("flights_skipped"):
+            out_d["flights_skipped"] = doc["flights_skipped"]
+    return out_d
+
+
+def _flight_dir(flight: str, taken: set[str]) -> str:
+    """A folder name for a flight id (safe characters only, unique)."""
+    name = "".join(c if (c.isalnum() or c in "-_.") else "_" for c in flight).strip(".") \
+        or "flight"
+    base, k = name, 2
+    while name in taken or name in ("diagnosis",):
+        name = f"{base}_{k}"
+        k += 1
+    taken.add(name)
+    return name
+
+
+def diagnose_flights(loaders: list[tuple[str, Callable[[], dict[str, Any]]]], out_dir: Path, *,
+                     reference: str | None, phi: int, seed: int = 0, q_min: float = 0.5,
+                     q_max: float = 8.0) -> dict[str, Any]:
+    """Diagnose several flights one at a time and write the combined verdict.
+
+    Parameters
+    ----------
+    loaders
+        (flight id, load) pairs in site order; ``load()`` returns the keyword arguments
+        of :func:`diagnose_grids` for that flight (``uav``, ``uav_valid``, ``sat``,
+        ``sat_valid``, ``sat_transform``, ``crs``, optional ``q_base`` and ``sources``),
+        or raises :class:`~geosim.errors.DiagnosisError` / ``ExtentError`` when the flight
+        cannot be diagnosed (it is then skipped, with the reason in ``flights_skipped``).
+    reference
+        The flight whose GeoTIFFs, maps and plots are copied to the top level (default,
+        or when it was skipped: the first diagnosed flight).
+
+    Returns
+    -------
+    dict
+        The combined diagnosis.json dict.
+    """
+    from tqdm import tqdm
+
+    from geosim.diagnose.report import write_combined
+
+    per: dict[str, dict[str, Any]] = {}
+    dirs: dict[str, str] = {}
+    skipped: dict[str, str] = {}
+    taken: set[str] = set()
+    for i, (fid, load) in enumerate(tqdm(loaders, desc="diagnose flights", unit="flight",
+                                         disable=None)):
+        try:
+            kw = load()
+            dirs[fid] = _flight_dir(fid, taken)
+            per[fid] = diagnose_grids(phi=phi, seed=seed + 1000 * i, q_min=q_min, q_max=q_max,
+                                      out_dir=out_dir / dirs[fid], extra={"flight": fid},
+                                      **kw)
+        except (DiagnosisError, ExtentError) as exc:
+            skipped[fid] = str(exc)
+            dirs.pop(fid, None)
+    if not per:
+        raise DiagnosisError(f"{out_dir}: no flight could be diagnosed against the satellite "
+                             "scene (" + "; ".join(f"{k}: {v}" for k, v in skipped.items())
+                             + "); give flights that overlap the satellite scene")
+    ref = reference if reference in per else next(iter(per))
+    return write_combined(per, out_dir, reference=ref, dirs=dirs, skipped=skipped)
 
 
 def _read_q_base(path: Path, flight: str) -> float | None:
@@ -138,19 +219,12 @@ def _read_q_base(path: Path, flight: str) -> float | None:
     return None
 
 
-def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
-    """Pipeline step ``diagnose``: reads the run folder, writes ``out_dir/diagnosis/``."""
-    out = Path(out_dir)
-    sat_path = out / "grid" / "satellite.tif"
-    if not sat_path.is_file():
-        raise DiagnosisError(f"{sat_path}: the satellite scene on the shared grid is missing; "
-                             "run the grid step first (geosim run) or give --satellite")
-    flight = site.reference_flight if site.reference_flight else site.flights[0].id
+def _read_flight(out: Path, sat_path: Path, flight: str, phi: int) -> dict[str, Any]:
+    """The satellite window over one aligned flight and the flight's UAV pixels under it."""
     uav_path = out / "aligned" / f"{flight}.tif"
     if not uav_path.is_file():
-        raise DiagnosisError(f"{uav_path}: the aligned reference flight is missing; run the "
+        raise DiagnosisError(f"{uav_path}: the aligned flight {flight} is missing; run the "
                              "align step first")
-    phi = site.parameters.phi
     with open_raster(uav_path, what=f"aligned flight {flight}") as du:
         ut = du.transform  # the aligned UAV grid is north-up and nested in the satellite grid
         u_bounds = (ut.c, ut.f + ut.e * du.height, ut.c + ut.a * du.width, ut.f)
@@ -179,11 +253,31 @@ def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
         uwin = rasterio.windows.Window(col, row, sat.shape[-1] * phi, sat.shape[-2] * phi)
         uav = du.read(image_band_indexes(du)[:3], window=uwin).astype(np.float32)
         uval = read_valid_mask(du, uwin)
-    q_base = _read_q_base(out / "calibration.json", flight)
-    doc = diagnose_grids(uav, uval, sat, sval, st, crs, out / "diagnosis", phi=phi,
-                         q_base=q_base, q_min=site.parameters.q_min,
-                         q_max=site.parameters.q_max,
-                         sources=[str(sat_path), str(uav_path)], extra={"flight": flight})
+    return {"uav": uav, "uav_valid": uval, "sat": sat, "sat_valid": sval, "sat_transform": st,
+            "crs": crs, "q_base": _read_q_base(out / "calibration.json", flight),
+            "sources": [str(sat_path), str(uav_path)]}
+
+
+def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
+    """Pipeline step ``diagnose``: reads the run folder, writes ``out_dir/diagnosis/``.
+
+    Every flight of the site is diagnosed against the satellite scene (flights without
+    enough overlap are skipped and listed); the summary is the combined verdict.
+    """
+    out = Path(out_dir)
+    sat_path = out / "grid" / "satellite.tif"
+    if not sat_path.is_file():
+        raise DiagnosisError(f"{sat_path}: the satellite scene on the shared grid is missing; "
+                             "run the grid step first (geosim run) or give --satellite")
+    reference = site.reference_flight if site.reference_flight else site.flights[0].id
+    phi = site.parameters.phi
+
+    def loader(flight: str) -> Callable[[], dict[str, Any]]:
+        return lambda: _read_flight(out, sat_path, flight, phi)
+
+    loaders = [(f.id, loader(f.id)) for f in site.flights]
+    doc = diagnose_flights(loaders, out / "diagnosis", reference=reference, phi=phi,
+                           q_min=site.parameters.q_min, q_max=site.parameters.q_max)
     summary = _summary(doc, out / "diagnosis")
     # the bundled sample site ships its ground truth: put fitted and true side by side
     site_path = getattr(site, "path", None)
@@ -195,9 +289,12 @@ def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
         rows = compare_with_truth(doc, json.loads(truth_path.read_text()))
         summary["truth_comparison"] = rows
         write_text(out / "diagnosis" / "truth_comparison.txt", format_truth_comparison(rows)
-                   + "\n(haze is fitted relative to the reference flight's radiometry, truth.json "
-                     "gives it relative to the true ground; misregistration is compared with "
-                     "the satellite-minus-reference-flight offset in truth.json)\n")
+                   + "\n(fitted = the combined verdict over the diagnosed flights: medians of "
+                     "the flights that claimed each effect; haze is fitted relative to the "
+                     "flights' radiometry (each flight's exposure and white balance divide the "
+                     "transmission), truth.json gives it relative to the true ground; "
+                     "misregistration is the reference flight's, compared with the "
+                     "satellite-minus-reference-flight offset in truth.json)\n")
     return summary
 
 
@@ -220,18 +317,21 @@ def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
                     out_dir: str | Path, *, uav_gsd_m: float = 0.05, sat_gsd_m: float = 0.5,
                     crs: str | None = None, seed: int = 0, q_min: float = 0.5,
                     q_max: float = 8.0, max_sat_px: int = MAX_SAT_PX) -> dict[str, Any]:
-    """Standalone diagnosis from GeoTIFFs in any CRS.
+    """Standalone diagnosis from GeoTIFFs in any CRS, every ``--uav`` against the satellite.
 
     The satellite's CRS is used when projected (else the UTM zone of its centre, or
-    ``crs``); the common extent of the first UAV image and the satellite is snapped to
-    the satellite GSD, both are reprojected (cubic) onto nested grids, and the central
-    window of at most ``max_sat_px`` satellite pixels is diagnosed.
+    ``crs``). For each UAV image, the common extent with the satellite is snapped to the
+    satellite GSD, both are reprojected (cubic) onto nested grids, and the central window
+    of at most ``max_sat_px`` satellite pixels is diagnosed (into ``out_dir/<stem>/``);
+    UAV images that overlap the satellite by less than 16 pixels are skipped. The first
+    diagnosed image is the reference (its GeoTIFFs are copied to ``out_dir``) and the
+    combined verdict is written to ``out_dir/diagnosis.json``. Each image keeps its own
+    georeference (no alignment between them), so misregistration is per image.
     """
     from geosim.prepare.grid import gsd_ratio, utm_crs_for_lonlat
 
     phi = gsd_ratio(uav_gsd_m, sat_gsd_m)
     sat_path = Path(satellite_path)
-    uav_path = Path(uav_paths[0])
     with open_raster(sat_path, what="--satellite") as ds:
         if crs is not None:
             dst_crs = CRS.from_user_input(crs)
@@ -241,28 +341,42 @@ def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
             b = transform_bounds(ds.crs, "EPSG:4326", *ds.bounds)
             dst_crs = utm_crs_for_lonlat((b[0] + b[2]) / 2, (b[1] + b[3]) / 2)
         sb = transform_bounds(ds.crs, dst_crs, *ds.bounds)
-    with open_raster(uav_path, what="--uav") as du:
-        ub = transform_bounds(du.crs, dst_crs, *du.bounds)
-    left, bottom = max(sb[0], ub[0]), max(sb[1], ub[1])
-    right, top = min(sb[2], ub[2]), min(sb[3], ub[3])
-    if right - left < 16 * sat_gsd_m or top - bottom < 16 * sat_gsd_m:
-        raise ExtentError(f"--uav {uav_path} and --satellite {sat_path} overlap by less than 16 "
-                          "satellite pixels; give images of the same place")
-    cx, cy = (left + right) / 2, (top + bottom) / 2
-    half = max_sat_px * sat_gsd_m / 2
-    left, right = max(left, cx - half), min(right, cx + half)
-    bottom, top = max(bottom, cy - half), min(top, cy + half)
-    left = np.ceil(left / sat_gsd_m) * sat_gsd_m
-    top = np.floor(top / sat_gsd_m) * sat_gsd_m
-    w = int(np.floor((right - left) / sat_gsd_m))
-    h = int(np.floor((top - bottom) / sat_gsd_m))
-    st = Affine(sat_gsd_m, 0, left, 0, -sat_gsd_m, top)
-    ut = Affine(uav_gsd_m, 0, left, 0, -uav_gsd_m, top)
-    sat, sval = _to_grid(sat_path, dst_crs, st, (h, w), "--satellite")
-    uav, uval = _to_grid(uav_path, dst_crs, ut, (h * phi, w * phi), "--uav")
+
+    def load(uav_path: Path) -> dict[str, Any]:
+        with open_raster(uav_path, what="--uav") as du:
+            ub = transform_bounds(du.crs, dst_crs, *du.bounds)
+        left, bottom = max(sb[0], ub[0]), max(sb[1], ub[1])
+        right, top = min(sb[2], ub[2]), min(sb[3], ub[3])
+        if right - left < 16 * sat_gsd_m or top - bottom < 16 * sat_gsd_m:
+            raise ExtentError(f"--uav {uav_path} and --satellite {sat_path} overlap by less "
+                              "than 16 satellite pixels; give images of the same place")
+        cx, cy = (left + right) / 2, (top + bottom) / 2
+        half = max_sat_px * sat_gsd_m / 2
+        left, right = max(left, cx - half), min(right, cx + half)
+        bottom, top = max(bottom, cy - half), min(top, cy + half)
+        left = np.ceil(left / sat_gsd_m) * sat_gsd_m
+        top = np.floor(top / sat_gsd_m) * sat_gsd_m
+        w = int(np.floor((right - left) / sat_gsd_m))
+        h = int(np.floor((top - bottom) / sat_gsd_m))
+        st = Affine(sat_gsd_m, 0, left, 0, -sat_gsd_m, top)
+        ut = Affine(uav_gsd_m, 0, left, 0, -uav_gsd_m, top)
+        sat, sval = _to_grid(sat_path, dst_crs, st, (h, w), "--satellite")
+        uav, uval = _to_grid(uav_path, dst_crs, ut, (h * phi, w * phi), "--uav")
+        return {"uav": uav, "uav_valid": uval, "sat": sat.astype(float), "sat_valid": sval,
+                "sat_transform": st, "crs": dst_crs,
+                "sources": [str(sat_path), str(uav_path)]}
+
+    ids: list[str] = []
+    loaders = []
+    for p in uav_paths:
+        stem, k = Path(p).stem, 2
+        fid = stem
+        while fid in ids:
+            fid = f"{stem}_{k}"
+            k += 1
+        ids.append(fid)
+        loaders.append((fid, lambda p=Path(p): load(p)))
     out = Path(out_dir)
-    doc = diagnose_grids(uav, uval, sat.astype(float), sval, st, dst_crs, out, phi=phi,
-                         seed=seed, q_min=q_min, q_max=q_max,
-                         sources=[str(sat_path)] + [str(p) for p in uav_paths],
-                         extra={"flight": uav_path.stem})
+    doc = diagnose_flights(loaders, out, reference=ids[0], phi=phi, seed=seed, q_min=q_min,
+                           q_max=q_max)
     return _summary(doc, out)
