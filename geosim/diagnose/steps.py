@@ -47,35 +47,16 @@ def calibrate_q_lv(sim: QSimulator, real_grey: np.ndarray, valid: np.ndarray, *,
                    q_min: float = 0.5, q_max: float = 8.0, quantized: bool = True) -> float:
     """Q at which the paper model's Laplacian variance equals the real scene's.
 
-    Uses the project's calibration, :func:`geosim.degrade.calibrate.calibrate_q`, when it
-    is importable (it also accounts for the LV that rounding to whole DN adds); otherwise a
-    bisection in log Q on the simulator.
+    The project's calibration (:func:`geosim.degrade.calibrate.calibrate_q`: a bracketed
+    root finder that also accounts for the LV that rounding to whole DN adds, and raises
+    :class:`~geosim.errors.CalibrationError` when the target is outside the bracket).
     """
+    from geosim.degrade.calibrate import calibrate_q
+
     target = laplacian_variance(real_grey, valid)
-    try:
-        from geosim.degrade.calibrate import calibrate_q
-    except ImportError:
-        pass
-    else:
-        return float(calibrate_q(sim.uav, sim.valid, target, phi=sim.phi,
-                                 q_min=max(q_min, sim.q_min), q_max=q_max,
-                                 quantized=quantized, name="UAV image"))
-    lo, hi = np.log(max(q_min, sim.q_min)), np.log(q_max)
-
-    def lv(q: float) -> float:
-        return laplacian_variance(luma(sim(q)), valid)
-
-    if lv(np.exp(lo)) < target:
-        return float(np.exp(lo))
-    if lv(np.exp(hi)) > target:
-        return float(np.exp(hi))
-    for _ in range(22):
-        mid = 0.5 * (lo + hi)
-        if lv(np.exp(mid)) > target:
-            lo = mid
-        else:
-            hi = mid
-    return float(np.exp(0.5 * (lo + hi)))
+    return float(calibrate_q(sim.uav, sim.valid, target, phi=sim.phi,
+                             q_min=max(q_min, sim.q_min), q_max=q_max,
+                             quantized=quantized, name="UAV image"))
 
 
 def _central_window(valid: np.ndarray, max_px: int) -> tuple[slice, slice]:
