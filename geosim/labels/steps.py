@@ -49,8 +49,8 @@ from geosim.config import SiteConfig
 from geosim.errors import AlignmentError, InputFileError
 from geosim.io.vector import write_geojson, write_gpkg
 from geosim.labels.dedupe import DEFAULT_IOU, dedupe_labels
-from geosim.labels.georef import affine_linear_scale, apply_affine, transform_geometries
-from geosim.labels.sources import read_site_labels
+from geosim.labels.georef import affine_linear_scale, transform_geometries
+from geosim.labels.sources import ImageGeoref, read_site_labels
 from geosim.labels.tiles import sat_tile_geometry, tile_boxes
 from geosim.labels.yolo import CLASS_NAMES, format_yolo
 
@@ -58,21 +58,10 @@ TILE_ID = re.compile(r"^r\d{3,}_c\d{3,}$")
 
 
 @dataclass(frozen=True)
-class TileGeoref:
-    """A UAV tile's id and georeference (read from its GeoTIFF header)."""
+class TileGeoref(ImageGeoref):
+    """A UAV tile's georeference (read from its GeoTIFF header) and its id."""
 
-    tile_id: str
-    transform: Affine
-    width_px: int
-    height_px: int
-    crs: CRS
-
-    @property
-    def outline(self) -> shapely.Polygon:
-        """Tile outline in map coordinates."""
-        w, h = self.width_px, self.height_px
-        return shapely.Polygon(apply_affine(self.transform, np.array(
-            [[0, 0], [w, 0], [w, h], [0, h]], dtype=float)))
+    tile_id: str = ""
 
 
 # ----------------------------------------------------------------------- inputs
@@ -107,8 +96,9 @@ def find_tiles(out_dir: Path, flight_ids: list[str]) -> dict[str, list[TileGeore
             if not TILE_ID.match(path.stem):
                 continue
             with rasterio.open(path) as ds:
-                tiles.append(TileGeoref(path.stem, ds.transform, ds.width, ds.height,
-                                        CRS.from_user_input(ds.crs.to_wkt())))
+                tiles.append(TileGeoref(path, ds.transform, ds.width, ds.height,
+                                        CRS.from_user_input(ds.crs.to_wkt()),
+                                        tile_id=path.stem))
         found[fid] = tiles
     return found
 
