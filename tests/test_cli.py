@@ -61,3 +61,31 @@ def test_debug_flag_shows_traceback(tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-m", "geosim", "--debug", "run", str(site), "--out",
                            str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0 and "Traceback" in proc.stderr
+
+
+def test_anchor_option_needs_a_satellite(tmp_path: Path) -> None:
+    write_raster(tmp_path / "ok.tif", textured_rgb(32, 32))
+    site = tmp_path / "site.toml"
+    site.write_text('[[flights]]\nid = "A"\nimage = "ok.tif"\nacquired = 2021-07-15\n')
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["run", str(site), "--out", str(out), "--anchor",
+                                      "satellite"])
+    assert result.exit_code == 2
+    assert "needs a satellite scene" in result.output
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_anchor_option_overrides_the_site_file(samples_dir: Path, tmp_path: Path) -> None:
+    import json
+
+    out = tmp_path / "out"
+    args = ["align", str(samples_dir / "site.toml"), "--out", str(out), "--anchor", "satellite"]
+    runner = CliRunner()
+    grid = runner.invoke(cli, ["grid", str(samples_dir / "site.toml"), "--out", str(out)])
+    assert grid.exit_code == 0, grid.output
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    alignment = json.loads((out / "alignment.json").read_text())
+    assert alignment["anchor"]["to"] == "satellite"
+    assert alignment["anchor"]["shift_m"] != [0.0, 0.0]
