@@ -81,3 +81,10 @@ def test_gpkg_is_version_1_2_in_its_crs(tmp_path: Path) -> None:
     with sqlite3.connect(path) as con:  # the GeoPackage spec's version lives in user_version
         assert con.execute("PRAGMA user_version").fetchone()[0] == 10200
     assert gpd.read_file(path, layer="x").crs.to_epsg() == 32756
+
+
+def test_provenance_sources_relative_to_the_run_folder(tmp_path: Path) -> None:
+    inside = tmp_path / "run" / "aligned" / "PA1.tif"
+    outside = tmp_path / "inputs" / "PA1.tif"
+    tags = provenance_tags("tiles", {}, [inside, outside], base_dir=tmp_path / "run")
+    assert json.loads(tags["GEOSIM_SOURCES"]) == ["aligned/PA1.tif", str(outside)]

@@ -113,16 +113,41 @@ def geotiff_profile(*, width: int, height: int, count: int, dtype: str | np.dtyp
 
 
 def provenance_tags(step: str, params: Mapping[str, Any] | None = None,
-                    sources: Sequence[str | os.PathLike[str]] = ()) -> dict[str, str]:
-    """GeoTIFF metadata tags that say what made a file."""
+                    sources: Sequence[str | os.PathLike[str]] = (), *,
+                    base_dir: str | os.PathLike[str] | None = None) -> dict[str, str]:
+    """GeoTIFF metadata tags that say what made a file.
+
+    Parameters
+    ----------
+    step
+        The pipeline step that wrote the file.
+    params
+        The step's parameters (JSON-serialised).
+    sources
+        Files the output was made from.
+    base_dir
+        The run folder: sources inside it are recorded relative to it (POSIX), so the
+        tags stay true when the folder is moved; sources outside it stay absolute.
+    """
     from geosim import __version__
 
     return {
         "GEOSIM_VERSION": __version__,
         "GEOSIM_STEP": step,
         "GEOSIM_PARAMS": json.dumps(dict(params or {}), sort_keys=True, default=str),
-        "GEOSIM_SOURCES": json.dumps([str(s) for s in sources]),
+        "GEOSIM_SOURCES": json.dumps([_source_name(s, base_dir) for s in sources]),
     }
+
+
+def _source_name(source: str | os.PathLike[str], base_dir: str | os.PathLike[str] | None
+                 ) -> str:
+    path = Path(source)
+    if base_dir is not None:
+        try:
+            return path.resolve().relative_to(Path(base_dir).resolve()).as_posix()
+        except ValueError:
+            pass  # outside the run folder: keep it absolute
+    return str(path.resolve()) if path.is_absolute() or path.exists() else str(path)
 
 
 @contextlib.contextmanager

@@ -383,7 +383,7 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
             m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
         al.apply_alignment(gpath[f.id], out / "aligned" / f"{f.id}.tif", m_grid=m_grid,
                            out_window=awin, block_px=BLOCK_PX, what=f.id,
-                           tags=provenance_tags("align", params, [gpath[f.id]]))
+                           tags=provenance_tags("align", params, [gpath[f.id]], base_dir=out))
 
     # local check: remaining shift field between each aligned flight and the reference
     local: dict[str, Any] = {}
@@ -493,7 +493,8 @@ def run_tiles(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     jobs = [(t, fid) for t, cov in selected for fid in apath if cov[fid] > 0]
     for t, fid in tqdm(jobs, desc="tiles", unit="tile", disable=None):
         write_tile(apath[fid], out / "tiles" / fid / f"{t.id}.tif", t,
-                   tags={**provenance_tags("tiles", params, [apath[fid]]), "GEOSIM_TILE_ID": t.id})
+                   tags={**provenance_tags("tiles", params, [apath[fid]], base_dir=out),
+                         "GEOSIM_TILE_ID": t.id})
         keep[fid].add(t.id)
         written += 1
     for fid, ids in keep.items():  # remove tiles left by an earlier run with other settings
