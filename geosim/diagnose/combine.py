@@ -39,7 +39,7 @@ from geosim.diagnose.effects import get_effect
 __all__ = ["combine_flights", "combine_values", "PER_FLIGHT_EFFECTS"]
 
 #: effects that belong to one flight (geometry of its georeference, its own scene)
-PER_FLIGHT_EFFECTS = ("misregistration", "scene_change")
+PER_FLIGHT_EFFECTS = ("misregistration", "scene_change", "exposure_seam")
 
 
 def _median(values: Sequence[float]) -> float:

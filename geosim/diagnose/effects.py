@@ -260,6 +260,29 @@ class ColourResponse(Effect):
         return radiometry.apply_gain_offset(image, gain=gain)
 
 
+class ExposureSeam(Effect):
+    name = "exposure_seam"
+    kind = "flight_artefact"
+    params = (ParamSpec("factor", "brightness factor of the stepped side", 0.5, 2.0, (1.0,)),
+              ParamSpec("normal_deg", "line normal, degrees from the column axis toward the "
+                        "row axis (image axes)", 0.0, 360.0, (0.0,), periodic=360.0),
+              ParamSpec("offset_px", "line distance from the image centre, pixels", -1e4, 1e4,
+                        (0.0,)))
+    signature = ("two radiometric relations on the two sides of a straight line: the same "
+                 "offset, gains in the same ratio in every band")
+    explanation = ("The UAV mosaic blends frames taken with different exposures: on one side "
+                   "of a straight seam every band is brighter by the same factor. This belongs "
+                   "to the flight, not to the satellite; the haze is fitted with the seam "
+                   "corrected, relative to the brighter side.")
+
+    def apply(self, image, *, rng=None, factor, normal_deg, offset_px, **_):
+        from geosim.diagnose.seam import step_side
+
+        img = np.asarray(image, dtype=float)
+        side = step_side(img.shape[-2:], normal_deg=normal_deg, offset_px=offset_px)
+        return img * np.where(side, factor, 1.0)
+
+
 class Compression(Effect):
     name = "compression"
     kind = "compression"
@@ -308,7 +331,8 @@ class SceneChange(Effect):
 
 CATALOGUE: dict[str, Effect] = {e.name: e for e in (
     DetectorIntegration(), AtmosphericBlur(), MotionSmear(), OffNadirAnisotropy(), Resampling(),
-    SensorNoise(), Haze(), ColourResponse(), Compression(), Misregistration(), SceneChange())}
+    SensorNoise(), Haze(), ColourResponse(), ExposureSeam(), Compression(), Misregistration(),
+    SceneChange())}
 
 BLUR_EFFECTS: tuple[str, ...] = tuple(n for n, e in CATALOGUE.items() if e.kind == "blur")
 

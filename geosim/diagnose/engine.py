@@ -30,6 +30,7 @@ from geosim.diagnose.fit import (
     fit_radiometry,
     fit_transfer,
 )
+from geosim.diagnose.seam import find_gain_step
 from geosim.diagnose.select import MIN_DELTA_BIC, select_blur, select_radiometry
 from geosim.diagnose.spectra import (
     block_origins,
@@ -313,7 +314,16 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         return np.stack([ndimage.gaussian_filter(b, RADIOMETRY_SIGMA_PX) for b in img])
 
     corr = 4.0 * np.pi * RADIOMETRY_SIGMA_PX**2
-    rad = fit_radiometry(lowpass(m_blur), lowpass(r), fit_mask, corr_px2=corr)
+    # an exposure seam of the UAV mosaic (one side of a line brighter in every band) gives
+    # two radiometric relations; one regression would thread between them and absorb the
+    # seam into the satellite's haze: fit the haze on the seam-corrected model instead
+    lp_blur, lp_real = lowpass(m_blur), lowpass(r)
+    seam = find_gain_step(lp_blur, lp_real, fit_mask, corr_px2=corr)
+    if seam is not None:
+        seam_gain = np.where(seam.side, seam.factor, 1.0)
+        m_blur = m_blur * seam_gain
+        lp_blur = lp_blur * seam_gain
+    rad = fit_radiometry(lp_blur, lp_real, fit_mask, corr_px2=corr)
     rsel = select_radiometry(rad, corr_px2=corr)
     if rsel["name"] == "haze":
         p = rsel["params"]
@@ -398,6 +408,11 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         steps.append((st.name, dict(st.fit.effects[st.name]), st.delta_bic,
                       {**st.fit.sigmas.get(st.name, {}), "heldout_gain": st.heldout_gain,  # type: ignore[dict-item]
                        "q": st.fit.q, "alternatives": st.alternatives}, m, m))
+    if seam is not None:
+        steps.append(("exposure_seam", {
+            "factor": seam.factor, "normal_deg": seam.normal_deg, "offset_px": seam.offset_px,
+            "fraction": seam.fraction, "line_px": seam.endpoints_px()}, seam.delta_bic,
+            {"explained": seam.explained}, m_blur, m_blur))
     if rsel["name"]:
         steps.append((str(rsel["name"]), dict(rsel["params"]),  # type: ignore[arg-type]
                       float(rsel["delta_bic"]), dict(rsel.get("sigmas", {})),  # type: ignore[arg-type]

@@ -320,6 +320,12 @@ def compare_with_truth(doc: dict[str, Any], truth: dict[str, Any]) -> list[dict[
             "shift_m": rel.get("shift_m_at_site_centre"),
             "rotation_deg": ref_err.get("rotation_deg"), "scale": ref_err.get("scale"),
             "relative_to": f"reference flight {rel.get('reference')}"}
+    ref_id = doc.get("reference_flight") or (rel or {}).get("reference")
+    seam = truth.get("flights", {}).get(ref_id, {}).get("artefacts", {}).get("exposure_seam")
+    if seam and seam.get("gain_left"):
+        # the diagnosis reports the factor that brightens the darker side (≥ 1)
+        gl = float(seam["gain_left"])
+        true_eff["exposure_seam"] = {"factor": max(gl, 1.0 / gl), "flight": ref_id}
     if "acquired" in sat:
         # another acquisition day: the cattle and the shadows are elsewhere
         true_eff.setdefault("scene_change", {

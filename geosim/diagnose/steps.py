@@ -273,7 +273,8 @@ def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
                    + "\n(fitted = the combined verdict over the diagnosed flights: medians of "
                      "the flights that claimed each effect; haze is fitted relative to the "
                      "flights' radiometry (each flight's exposure and white balance divide the "
-                     "transmission), truth.json gives it relative to the true ground; "
+                     "transmission; with an exposure seam, relative to the brighter side of "
+                     "the seam), truth.json gives it relative to the true ground; "
                      "misregistration is the reference flight's, compared with the "
                      "satellite-minus-reference-flight offset in truth.json)\n")
     return summary
