@@ -24,6 +24,18 @@ MAPS = {"residual_energy": "map_residual_energy.tif", "blur_ratio": "map_blur_ra
         "gain": "map_gain.tif", "offset": "map_offset.tif"}
 
 
+
+def _save_png(fig: Any, path: Path, *, dpi: int, tight: bool = True) -> str:
+    """Write a figure as PNG atomically, close it, and return the file name."""
+    import matplotlib.pyplot as plt
+
+    if tight:
+        fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    plt.close(fig)
+    return path.name
+
 def _regions_gdf(diag: Diagnosis, transform: Affine, crs: CRS):
     import geopandas as gpd
     from rasterio import features
@@ -109,11 +121,7 @@ def _plots(diag: Diagnosis, out: Path) -> list[str]:
     ax.set_ylabel("power spectrum (DN², grey level)")
     ax.set_title("Power spectra of the images as delivered", fontsize=10)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(out / "transfer_function.png") as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
-    written.append("transfer_function.png")
+    written.append(_save_png(fig, out / "transfer_function.png", dpi=100, tight=True))
     # 2. noise vs brightness
     fig, ax = plt.subplots(figsize=(5.5, 4))
     if len(p["noise_brightness"]):
@@ -130,11 +138,7 @@ def _plots(diag: Diagnosis, out: Path) -> list[str]:
     ax.set_title("sensor_noise " + ("claimed" if p.get("noise_claimed") else "not claimed"),
                  fontsize=10)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(out / "noise_vs_brightness.png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    written.append("noise_vs_brightness.png")
+    written.append(_save_png(fig, out / "noise_vs_brightness.png", dpi=110, tight=True))
     # 3. maps
     fig, axes = plt.subplots(1, 4, figsize=(16, 4))
     for ax, (k, title) in zip(axes, (("residual_energy", "residual energy after refit (DN², log)"),
@@ -166,10 +170,7 @@ def _plots(diag: Diagnosis, out: Path) -> list[str]:
              "of 16 px against the co-registered baseline (gain/offset blank where the block "
              "correlation < 0.5); colour limits at robust percentiles", fontsize=8)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
-    with atomic_path(out / "mismatch_maps.png") as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
-    written.append("mismatch_maps.png")
+    written.append(_save_png(fig, out / "mismatch_maps.png", dpi=90, tight=False))
     return written
 
 
