@@ -42,6 +42,7 @@ from geosim.degrade.core import METHODS, degrade_array, to_dtype
 from geosim.degrade.plot import plot_calibration
 from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
 from geosim.io.atomic import write_json
+from geosim.io.paths import relative_if_inside
 from geosim.io.raster import (
     image_band_indexes,
     open_raster,
@@ -72,13 +73,6 @@ LV_DEFINITION = (
 
 
 # --------------------------------------------------------------------------- helpers
-
-def _rel(path: Path, base: Path) -> str:
-    try:
-        return str(path.resolve().relative_to(base.resolve()))
-    except ValueError:
-        return str(path)
-
 
 def _sat_offset(uav_tf: Affine, sat_tf: Affine, phi: int, what: str) -> tuple[int, int]:
     """(row, col) of a UAV raster's north-west corner on the satellite grid, whole pixels."""
@@ -264,7 +258,7 @@ def run_calibrate(site: SiteConfig, out_dir: str | Path) -> dict[str, Any]:
     doc: dict[str, Any] = {
         "site": site.name,
         "geosim_version": __version__,
-        "satellite": _rel(sat_path, out),
+        "satellite": relative_if_inside(sat_path, out),
         "satellite_source": str(site.satellite.image),
         "satellite_acquired": (site.satellite.acquired.isoformat()
                                if site.satellite.acquired else None),
@@ -431,7 +425,7 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
     start = time.perf_counter()
     for fid, src in tqdm(jobs, desc="degrade", unit="tile", disable=None):
         dst = out / "degraded" / fid / src.name
-        tags = {**provenance_tags("degrade", params, [_rel(src, out)]),
+        tags = {**provenance_tags("degrade", params, [src], base_dir=out),
                 "GEOSIM_Q": f"{q:.6g}", "GEOSIM_METHOD": method,
                 "GEOSIM_UAV_GSD_M": f"{p.uav_gsd_m:g}", "GEOSIM_SAT_GSD_M": f"{p.sat_gsd_m:g}",
                 "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem}

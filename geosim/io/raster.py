@@ -24,6 +24,7 @@ from rasterio.windows import Window
 
 from geosim.errors import InputFileError, RasterError
 from geosim.io.atomic import atomic_path
+from geosim.io.paths import relative_if_inside
 
 BLOCK_PX = 256
 
@@ -141,13 +142,11 @@ def provenance_tags(step: str, params: Mapping[str, Any] | None = None,
 
 def _source_name(source: str | os.PathLike[str], base_dir: str | os.PathLike[str] | None
                  ) -> str:
+    """Relative to ``base_dir`` when inside it; otherwise absolute (when it can be resolved)."""
     path = Path(source)
-    if base_dir is not None:
-        try:
-            return path.resolve().relative_to(Path(base_dir).resolve()).as_posix()
-        except ValueError:
-            pass  # outside the run folder: keep it absolute
-    return str(path.resolve()) if path.is_absolute() or path.exists() else str(path)
+    if not path.is_absolute() and path.exists():
+        path = path.resolve()
+    return relative_if_inside(path, base_dir)
 
 
 @contextlib.contextmanager

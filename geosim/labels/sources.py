@@ -41,6 +41,7 @@ from pyproj import CRS
 
 from geosim.config import FlightConfig
 from geosim.errors import CRSError, InputFileError, LabelError
+from geosim.io.paths import relative_if_inside
 from geosim.io.raster import open_raster
 from geosim.labels.georef import (
     apply_affine,
@@ -97,16 +98,6 @@ def read_image_georef(path: str | os.PathLike[str], *, what: str) -> ImageGeoref
                            CRS.from_user_input(ds.crs.to_wkt()))
 
 
-def _display(path: Path, base_dir: Path | None) -> str:
-    """A path relative to ``base_dir`` when inside it (stable across machines)."""
-    if base_dir is not None:
-        try:
-            return path.resolve().relative_to(base_dir.resolve()).as_posix()
-        except ValueError:
-            pass
-    return str(path)
-
-
 def _frame(flight: FlightConfig, geoms: np.ndarray, *, class_names: Sequence[str],
            source_file: Sequence[str], source_line: Sequence[int], source_kind: str,
            sides_m: np.ndarray, crs: CRS) -> gpd.GeoDataFrame:
@@ -157,7 +148,7 @@ def yolo_file_to_frame(label_file: Path, image: ImageGeoref, class_list: Sequenc
     polys = boxes_to_polygons(yolo.boxes, image.transform, image.width_px, image.height_px)
     polys = reproject_geometries(polys, image.crs, site_crs)
     sides_m = _corner_sides(polys) * linear_unit_m(site_crs)
-    name = _display(label_file, base_dir)
+    name = relative_if_inside(label_file, base_dir)
     return _frame(flight, polys, class_names=yolo.class_names, source_file=[name] * len(yolo),
                   source_line=yolo.lines, source_kind="yolo", sides_m=sides_m, crs=site_crs)
 
@@ -277,7 +268,7 @@ def read_vector_labels(path: Path, flight: FlightConfig, site_crs: CRS, *,
                          "this flight")
     sides_m = polygon_sides(geoms) * linear_unit_m(site_crs)
     kind = "gpkg" if path.suffix.lower() == ".gpkg" else "geojson"
-    name = _display(path, base_dir)
+    name = relative_if_inside(path, base_dir)
     return _frame(flight, geoms, class_names=classes, source_file=[name] * len(geoms),
                   source_line=np.arange(1, len(geoms) + 1), source_kind=kind,
                   sides_m=sides_m, crs=site_crs)

@@ -69,12 +69,11 @@ class TileGeoref(ImageGeoref):
 
 def read_grid(out_dir: Path) -> Any | None:
     """The shared grid (``grid/grid.json``) as a ``SiteGrid``, or None if absent."""
-    path = out_dir / "grid" / "grid.json"
-    if not path.is_file():
+    if not (out_dir / "grid" / "grid.json").is_file():
         return None
-    from geosim.prepare.grid import SiteGrid
+    from geosim.prepare.steps import read_grid as read_site_grid
 
-    return SiteGrid.from_dict(json.loads(path.read_text()))
+    return read_site_grid(out_dir)
 
 
 def find_tiles(out_dir: Path, flight_ids: list[str]) -> dict[str, list[TileGeoref]]:
