@@ -51,6 +51,7 @@ from geosim.io.raster import (
     write_geotiff,
 )
 from geosim.physics.psf import first_zero_px
+from geosim.prepare.grid import sat_grid_offset
 
 CALIBRATION_JSON = "calibration.json"
 CALIBRATION_PNG = "calibration.png"
@@ -73,25 +74,6 @@ LV_DEFINITION = (
 
 
 # --------------------------------------------------------------------------- helpers
-
-def _sat_offset(uav_tf: Affine, sat_tf: Affine, phi: int, what: str) -> tuple[int, int]:
-    """(row, col) of a UAV raster's north-west corner on the satellite grid, whole pixels."""
-    if uav_tf.b != 0 or uav_tf.d != 0 or sat_tf.b != 0 or sat_tf.d != 0:
-        raise RasterError(f"{what}: rotated georeference; the shared grid is north-up — "
-                          "re-run 'geosim grid' and 'geosim align'")
-    for name, u, s in (("x", uav_tf.a, sat_tf.a), ("y", uav_tf.e, sat_tf.e)):
-        if not math.isclose(u * phi, s, rel_tol=1e-9):
-            raise RasterError(f"{what}: {name} pixel size {u} m × φ = {phi} is not the "
-                              f"satellite grid's {s} m; both must come from the same "
-                              "'geosim grid' run (re-run grid and align)")
-    col = (uav_tf.c - sat_tf.c) / sat_tf.a
-    row = (uav_tf.f - sat_tf.f) / sat_tf.e
-    if abs(col - round(col)) > 1e-6 or abs(row - round(row)) > 1e-6:
-        raise RasterError(f"{what}: its origin is {col:.6f}, {row:.6f} satellite pixels from "
-                          "the satellite grid's, not a whole number: it is not on the shared "
-                          "nested grid; re-run 'geosim grid' and 'geosim align'")
-    return round(row), round(col)
-
 
 def _grey_reader(ds: rasterio.DatasetReader, bands: list[int], row0: int, col0: int,
                  dn_max: float | None) -> GreyWindowReader:
@@ -163,7 +145,7 @@ def calibrate_flight(flight_id: str, flight_path: Path, sat: rasterio.DatasetRea
         if ds.crs != sat.crs:
             raise RasterError(f"aligned {what} ({flight_path}) is in {ds.crs}, the satellite "
                               f"grid in {sat.crs}; re-run 'geosim grid' and 'geosim align'")
-        row_off, col_off = _sat_offset(ds.transform, sat.transform, phi, f"aligned {what}")
+        row_off, col_off = sat_grid_offset(ds.transform, sat.transform, phi, f"aligned {what}")
         rows_s, cols_s = ds.height // phi, ds.width // phi
         r0, c0 = max(row_off, 0), max(col_off, 0)
         r1, c1 = min(row_off + rows_s, sat.height), min(col_off + cols_s, sat.width)

@@ -37,6 +37,7 @@ from geosim.diagnose.simulate import QSimulator
 from geosim.errors import DiagnosisError, ExtentError
 from geosim.io.raster import image_band_indexes, open_raster, read_valid_mask
 from geosim.physics.radiometry import luma
+from geosim.prepare.grid import sat_grid_offset
 
 __all__ = ["run_diagnose", "diagnose_images", "calibrate_q_lv", "diagnose_grids"]
 
@@ -206,16 +207,14 @@ def _read_flight(out: Path, sat_path: Path, flight: str, phi: int) -> dict[str, 
     if not uav_path.is_file():
         raise DiagnosisError(f"{uav_path}: the aligned flight {flight} is missing; run the "
                              "align step first")
-    with open_raster(uav_path, what=f"aligned flight {flight}") as du:
-        ut = du.transform  # the aligned UAV grid is north-up and nested in the satellite grid
-        u_bounds = (ut.c, ut.f + ut.e * du.height, ut.c + ut.a * du.width, ut.f)
-    with open_raster(sat_path, what="satellite on grid") as ds:
-        s_t = ds.transform
+    with open_raster(sat_path, what="satellite on grid") as ds, \
+            open_raster(uav_path, what=f"aligned flight {flight}") as du:
+        row_off, col_off = sat_grid_offset(du.transform, ds.transform, phi,
+                                           f"aligned flight {flight}")
         # satellite pixels fully inside the aligned flight's extent
-        c0 = max(0, int(np.ceil((u_bounds[0] - s_t.c) / s_t.a - 1e-6)))
-        c1 = min(ds.width, int(np.floor((u_bounds[2] - s_t.c) / s_t.a + 1e-6)))
-        r0 = max(0, int(np.ceil((s_t.f - u_bounds[3]) / -s_t.e - 1e-6)))
-        r1 = min(ds.height, int(np.floor((s_t.f - u_bounds[1]) / -s_t.e + 1e-6)))
+        r0, c0 = max(row_off, 0), max(col_off, 0)
+        r1 = min(row_off + du.height // phi, ds.height)
+        c1 = min(col_off + du.width // phi, ds.width)
         if c1 - c0 < 16 or r1 - r0 < 16:
             raise ExtentError(f"{uav_path} and {sat_path} overlap by less than 16 satellite "
                               "pixels; the diagnosis needs a common extent")
@@ -228,10 +227,9 @@ def _read_flight(out: Path, sat_path: Path, flight: str, phi: int) -> dict[str, 
         sval = read_valid_mask(ds, win)
         st = ds.window_transform(win)
         crs = ds.crs
-    with open_raster(uav_path, what=f"aligned flight {flight}") as du:
-        col = int(round((st.c - ut.c) / ut.a))
-        row = int(round((st.f - ut.f) / ut.e))
-        uwin = rasterio.windows.Window(col, row, sat.shape[-1] * phi, sat.shape[-2] * phi)
+        uwin = rasterio.windows.Window((win.col_off - col_off) * phi,
+                                       (win.row_off - row_off) * phi,
+                                       sat.shape[-1] * phi, sat.shape[-2] * phi)
         uav = du.read(image_band_indexes(du)[:3], window=uwin).astype(np.float32)
         uval = read_valid_mask(du, uwin)
     return {"uav": uav, "uav_valid": uval, "sat": sat, "sat_valid": sval, "sat_transform": st,

@@ -30,7 +30,7 @@ from rasterio.crs import CRS
 from rasterio.windows import Window
 from rasterio.windows import bounds as window_bounds
 
-from geosim.errors import ConfigError, CRSError
+from geosim.errors import ConfigError, CRSError, RasterError
 
 Bounds = tuple[float, float, float, float]  # (minx, miny, maxx, maxy)
 
@@ -265,3 +265,29 @@ def snap_window_to_sat(window: Window, phi: int, uav_shape: tuple[int, int]) -> 
     c1 = min(cols, math.ceil((window.col_off + window.width) / phi) * phi)
     r1 = min(rows, math.ceil((window.row_off + window.height) / phi) * phi)
     return Window(c0, r0, max(0, c1 - c0), max(0, r1 - r0))
+
+
+def sat_grid_offset(uav_tf: Affine, sat_tf: Affine, phi: int, what: str) -> tuple[int, int]:
+    """(row, col) of a UAV-grid raster's north-west corner on the satellite grid, whole pixels.
+
+    Raises
+    ------
+    RasterError
+        ``what`` is rotated, its pixel size × ``phi`` is not the satellite grid's, or its
+        origin is not on a satellite pixel corner: it is not on the shared nested grid.
+    """
+    if uav_tf.b != 0 or uav_tf.d != 0 or sat_tf.b != 0 or sat_tf.d != 0:
+        raise RasterError(f"{what}: rotated georeference; the shared grid is north-up — "
+                          "re-run 'geosim grid' and 'geosim align'")
+    for name, u, s in (("x", uav_tf.a, sat_tf.a), ("y", uav_tf.e, sat_tf.e)):
+        if not math.isclose(u * phi, s, rel_tol=1e-9):
+            raise RasterError(f"{what}: {name} pixel size {u} m × φ = {phi} is not the "
+                              f"satellite grid's {s} m; both must come from the same "
+                              "'geosim grid' run (re-run grid and align)")
+    col = (uav_tf.c - sat_tf.c) / sat_tf.a
+    row = (uav_tf.f - sat_tf.f) / sat_tf.e
+    if abs(col - round(col)) > 1e-6 or abs(row - round(row)) > 1e-6:
+        raise RasterError(f"{what}: its origin is {col:.6f}, {row:.6f} satellite pixels from "
+                          "the satellite grid's, not a whole number: it is not on the shared "
+                          "nested grid; re-run 'geosim grid' and 'geosim align'")
+    return round(row), round(col)
