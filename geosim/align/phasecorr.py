@@ -68,6 +68,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from geosim.errors import AlignmentError, RasterError
+from geosim.physics.radiometry import LUMA_WEIGHTS
 
 __all__ = [
     "DEFAULT_MIN_CONFIDENCE",
@@ -181,8 +182,8 @@ def as_grey(image: np.ndarray, what: str = "image") -> np.ndarray:
     if img.ndim == 3:
         img = img.astype(np.float32, copy=False)
         if img.shape[0] >= 3:
-            return (np.float32(0.299) * img[0] + np.float32(0.587) * img[1]
-                    + np.float32(0.114) * img[2])
+            wr, wg, wb = (np.float32(w) for w in LUMA_WEIGHTS)  # float32: half the memory
+            return wr * img[0] + wg * img[1] + wb * img[2]
         return img.mean(axis=0, dtype=np.float32)
     raise RasterError(f"{what}: expected a (rows, cols) or bands-first (bands, rows, cols) "
                       f"array, got shape {img.shape}; pass one band or a bands-first stack")

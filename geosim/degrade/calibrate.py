@@ -35,13 +35,10 @@ from geosim.degrade.blur import (
 )
 from geosim.degrade.core import SpectralDegrader, _check_phi, _check_q
 from geosim.errors import CalibrationError
+from geosim.physics.radiometry import LUMA_WEIGHTS
 
 #: Q range of real satellite cameras (the paper); outside it the model lacks physics.
 PLAUSIBLE_Q = (0.5, 2.0)
-
-
-#: Luma weights (BT.601) of R, G, B.
-_LUMA = np.array([0.299, 0.587, 0.114])
 
 
 def quantization_lv(step_grey: float, *, bands: int = 3) -> float:
@@ -61,7 +58,7 @@ def quantization_lv(step_grey: float, *, bands: int = 3) -> float:
     bands
         Bands of the delivered image: ≥ 3 uses the luma weights, 1 a single grey band.
     """
-    weights = _LUMA if bands >= 3 else np.ones(1)
+    weights = np.asarray(LUMA_WEIGHTS) if bands >= 3 else np.ones(1)
     return float((PAPER_LAPLACIAN**2).sum() * (weights**2).sum() * step_grey**2 / 12.0)
 
 

@@ -92,6 +92,10 @@ def resample_through_native(image: np.ndarray, *, native_pitch_px: float) -> np.
     return out.astype(float)
 
 
+#: ITU-R BT.601 luma weights of R, G, B (as OpenCV's RGB2GRAY).
+LUMA_WEIGHTS: tuple[float, float, float] = (0.299, 0.587, 0.114)
+
+
 def luma(image: np.ndarray) -> np.ndarray:
     """Grey level (ITU-R BT.601 luma, as OpenCV's RGB2GRAY) of a (3, rows, cols) image.
 
@@ -104,4 +108,5 @@ def luma(image: np.ndarray) -> np.ndarray:
         return img[0]
     if img.shape[0] < 3:
         raise ValueError(f"luma needs 1 or ≥3 bands (R, G, B first), got {img.shape[0]}")
-    return 0.299 * img[0] + 0.587 * img[1] + 0.114 * img[2]
+    wr, wg, wb = LUMA_WEIGHTS
+    return wr * img[0] + wg * img[1] + wb * img[2]
