@@ -142,11 +142,12 @@ class Parameters:
             raise ConfigError(f"parameters.min_align_confidence = {self.min_align_confidence} "
                               "must be in [0, 1]")
         ratio = self.sat_gsd_m / self.uav_gsd_m
-        if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+        if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 2:
             raise ConfigError(
                 f"parameters: sat_gsd_m / uav_gsd_m = {self.sat_gsd_m} / {self.uav_gsd_m} = "
                 f"{ratio:g} is not a whole number; choose GSDs so every satellite pixel is "
-                "exactly φ×φ UAV pixels (e.g. 0.05 and 0.5)")
+                "exactly φ×φ UAV pixels with φ ≥ 2 (e.g. 0.05 and 0.5); φ = 1 would "
+                "compare the UAV imagery with itself")
         if self.tile_px % round(ratio):
             raise ConfigError(f"parameters.tile_px = {self.tile_px} is not a multiple of "
                               f"φ = {round(ratio)}; tiles must hold whole satellite pixels")
@@ -325,8 +326,10 @@ def _check_crs(value: str, src: Path) -> str:
 
 def _check_raster_has_crs(path: Path, key: str, src: Path) -> None:
     from geosim.io.raster import open_raster
+    from geosim.validate import check_raster_bands
 
-    open_raster(path, what=f"{src}: {key}").close()
+    with open_raster(path, what=f"{src}: {key}") as ds:
+        check_raster_bands(ds, f"{src}: {key}")
 
 
 def load_site(path: str | Path, *, check_rasters: bool = True) -> SiteConfig:

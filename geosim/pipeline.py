@@ -23,6 +23,7 @@ from geosim.config import SiteConfig
 from geosim.errors import ConfigError
 from geosim.io.atomic import write_json
 from geosim.io.raster import sha256_file
+from geosim.validate import preflight
 
 
 @dataclass(frozen=True)
@@ -114,8 +115,9 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path, *, only: Sequence[str] |
         ``failed`` and the message) before its exception propagates.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     steps = select_steps(only)
+    preflight(site, out, [s.name for s in steps])  # refuses before anything is written
+    out.mkdir(parents=True, exist_ok=True)
     record: dict[str, Any] = {
         "geosim_version": __version__,
         "started": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),

@@ -32,7 +32,9 @@ def run(site_file: Path, out: Path, only: tuple[str, ...], anchor: str | None) -
 @ANCHOR_OPTION
 def demo(out: Path, only: tuple[str, ...], anchor: str | None) -> None:
     """Run the whole pipeline on the bundled sample site."""
-    site_path = bundled_site(out / "sample_site", echo=lambda s: click.echo(s, err=True))
+    # beside --out, not in it: a run folder never holds its own inputs
+    site_path = bundled_site(out.with_name(f"{out.name}_sample_site"),
+                             echo=lambda s: click.echo(s, err=True))
     click.echo(f"sample site: {site_path}", err=True)
     run_steps(site_path, out, only, anchor=anchor)
     click.echo(f"outputs in {out}/ (run.json records inputs, parameters and timings)")

@@ -80,6 +80,7 @@ def diagnose_grids(uav: np.ndarray, uav_valid: np.ndarray, sat: np.ndarray,
                    q_min: float = 0.5, q_max: float = 8.0, sources: list[str] | None = None,
                    extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """Diagnose co-gridded arrays (UAV at sat/phi, satellite at the sat grid) and write."""
+    uav, sat = common_bands(uav, sat)
     sim = QSimulator(uav.astype(np.float32), phi=phi, valid=uav_valid, q_min=0.6)
     s0 = sim(2.0)
     valid = sat_valid & sim_valid(uav_valid, phi, s0.shape[-2:])
@@ -90,6 +91,30 @@ def diagnose_grids(uav: np.ndarray, uav_valid: np.ndarray, sat: np.ndarray,
     doc = write_diagnosis(diag, out_dir, transform=sat_transform, crs=crs, sources=sources,
                           extra=extra)
     return doc
+
+
+def common_bands(uav: np.ndarray, sat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two images with the same bands: both as they are, or both grey (luma).
+
+    A grey (1-band) flight or satellite scene says nothing about colour, so when one
+    image is grey and the other RGB the RGB one is compared by its luma (BT.601).
+
+    Parameters
+    ----------
+    uav, sat
+        (bands, rows, cols) arrays, DN; 1 or >= 3 bands each.
+    """
+    nu, ns = uav.shape[0], sat.shape[0]
+    if nu == ns:
+        return uav, sat
+    if 1 not in (nu, ns):
+        raise DiagnosisError(f"UAV imagery has {nu} band(s) and the satellite scene {ns}; "
+                             "give both the same bands (RGB) or one of them grey")
+    if nu > 1:
+        uav = luma(uav)[np.newaxis].astype(uav.dtype, copy=False)
+    if ns > 1:
+        sat = luma(sat)[np.newaxis].astype(np.float32, copy=False)
+    return uav, sat
 
 
 def sim_valid(uav_valid: np.ndarray, phi: int, shape: tuple[int, int]) -> np.ndarray:

@@ -20,8 +20,10 @@ that have labels: an empty file claims "no cattle here", which an unlabelled
 flight cannot.
 
 All labels are read and validated before anything is written, and the whole
-folder is built under a temporary name and swapped in by renames, so a bad
-label file or a crash leaves the previous ``labels/`` (or none) untouched.
+folder is built under a temporary name and put in place by
+:func:`geosim.io.publish.publish_folder`, so a bad label file or a crash leaves the
+previous ``labels/`` (or none) untouched, and files in ``labels/`` that geosim did not
+write are never deleted.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from tqdm import tqdm
 
 from geosim.config import SiteConfig
 from geosim.errors import AlignmentError, InputFileError
+from geosim.io.publish import publish_folder
 from geosim.io.vector import write_geojson, write_gpkg
 from geosim.labels.dedupe import DEFAULT_IOU, dedupe_labels
 from geosim.labels.georef import affine_linear_scale, transform_geometries
@@ -251,17 +254,16 @@ def build_tile_labels(cattle: gpd.GeoDataFrame, tiles: list[TileGeoref], *, phi:
 # ---------------------------------------------------------------------- writing
 
 
-def _swap_in(stage: Path, final: Path) -> None:
-    """Replace ``final`` (a folder) by ``stage`` with two renames."""
-    old = None
-    if final.exists():
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(final, old)
-    os.replace(stage, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+_OWN_TOP = {"cattle.geojson", "cattle.gpkg", "classes.txt"}
+
+
+def _legacy_own(rel: str) -> bool:
+    """Whether ``rel`` (POSIX, inside labels/) is a file this step writes (by its name)."""
+    parts = rel.split("/")
+    if len(parts) == 1:
+        return rel in _OWN_TOP
+    return (len(parts) == 3 and parts[0] in ("yolo", "yolo_0.5m") and rel.endswith(".txt")
+            and TILE_ID.match(parts[2][:-4]) is not None)
 
 
 @contextlib.contextmanager
@@ -271,7 +273,7 @@ def _staging(final: Path):
     stage.chmod(0o755)  # mkdtemp makes it private; the outputs are for everyone to read
     try:
         yield stage
-        _swap_in(stage, final)
+        publish_folder(stage, final, legacy_own=_legacy_own)
     finally:
         if stage.exists():
             shutil.rmtree(stage, ignore_errors=True)
