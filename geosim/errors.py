@@ -51,3 +51,8 @@ class DiagnosisError(GeosimError, RuntimeError):
 
 class OutputError(GeosimError, OSError):
     """An output cannot be written (exists and overwrite not allowed, unwritable folder)."""
+
+
+class GeosimWarning(UserWarning):
+    """Something geosim repaired or assumed that the user should check (e.g. a paddock
+    polygon made valid)."""

@@ -112,6 +112,25 @@ def check_out_path(out: str | os.PathLike[str], inputs: Mapping[str, Path], *,
     return target
 
 
+def check_out_file(out: str | os.PathLike[str], inputs: Mapping[str, str | os.PathLike[str]],
+                   *, option: str = "--out") -> Path:
+    """Refuse an output file that is one of the inputs, a folder, or in a missing place.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out`` resolved.
+    """
+    target = Path(out).resolve()
+    for what, path in inputs.items():
+        if Path(path).resolve() == target:
+            raise OutputError(f"{option} {out} is the {what}; geosim would overwrite its own "
+                              f"input: give another {option} path")
+    if target.is_dir():
+        raise OutputError(f"{option} {out} is a folder; give a file path (e.g. counts.csv)")
+    return target
+
+
 def check_out_dir(site: SiteConfig, out: str | os.PathLike[str]) -> Path:
     """Refuse a run folder that is a file, unwritable, or touches the site's inputs.
 

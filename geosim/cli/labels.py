@@ -45,12 +45,18 @@ def cattle_per_paddock(labels_path: Path, paddocks_path: Path, name_column: str,
                        out: Path | None) -> None:
     """Count cattle in each paddock in each flight, with density per hectare."""
     from geosim.labels.paddocks import cattle_per_paddock as count
-    from geosim.labels.paddocks import format_counts, write_counts_csv
+    from geosim.labels.paddocks import check_paddocks, format_counts, write_counts_csv
     from geosim.labels.sources import read_cattle, read_paddocks
+    from geosim.validate import check_out_file
 
-    table = count(read_cattle(labels_path), read_paddocks(paddocks_path,
-                                                          name_column=name_column),
-                  name_column=name_column)
+    if out is not None:  # before any work: the CSV must not replace an input
+        check_out_file(out, {"--labels file": labels_path, "--paddocks file": paddocks_path})
+    cattle = read_cattle(labels_path)
+    paddocks, repairs = check_paddocks(read_paddocks(paddocks_path, name_column=name_column),
+                                       name_column)
+    for repair in repairs:
+        click.echo(f"geosim: warning: {paddocks_path}: {repair.message()}", err=True)
+    table = count(cattle, paddocks, name_column=name_column)
     click.echo(format_counts(table))
     if out is not None:
         write_counts_csv(table, out)

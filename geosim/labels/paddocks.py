@@ -7,12 +7,15 @@ join. Paddock areas are ellipsoidal (geodesic) areas on the WGS 84 ellipsoid
 computed with :class:`pyproj.Geod` from the polygons in lon/lat, so they are
 the ground areas whatever CRS either input is in (a UTM grid area differs from
 the ground area by the squared scale factor, up to 0.08 % inside a zone).
-Features with the same name are one paddock.
+Paddocks must have unique, non-empty names; invalid polygons are repaired with
+:func:`shapely.make_valid` and reported (:func:`check_paddocks`).
 """
 
 from __future__ import annotations
 
 import os
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import geopandas as gpd
@@ -21,7 +24,7 @@ import pandas as pd
 import shapely
 from pyproj import Geod
 
-from geosim.errors import LabelError
+from geosim.errors import GeosimWarning, LabelError
 from geosim.io.atomic import write_text
 
 #: Row name for cattle whose centre is in no paddock.
@@ -62,19 +65,115 @@ def paddock_areas_ha(paddocks: gpd.GeoDataFrame) -> np.ndarray:
     return np.array([geodesic_area_m2(g) for g in lonlat]) / _M2_PER_HA
 
 
-def _dissolve(paddocks: gpd.GeoDataFrame, name_column: str) -> gpd.GeoDataFrame:
+@dataclass(frozen=True)
+class PaddockRepair:
+    """An invalid paddock polygon repaired with :func:`shapely.make_valid`.
+
+    Attributes
+    ----------
+    name
+        The paddock's name.
+    reason
+        Why it was invalid (GEOS's explanation, e.g. ``Self-intersection[x y]``).
+    area_before_ha, area_after_ha
+        Geodesic area as drawn and after the repair, hectares.
+    """
+
+    name: str
+    reason: str
+    area_before_ha: float
+    area_after_ha: float
+
+    def message(self) -> str:
+        """One line for the user."""
+        return (f"paddock '{self.name}' is an invalid polygon ({self.reason}); repaired: "
+                f"area {self.area_before_ha:.3f} ha as drawn -> {self.area_after_ha:.3f} ha; "
+                "check it in QGIS")
+
+
+def _polygonal(geom: shapely.Geometry) -> shapely.Geometry:
+    """The polygons of a geometry (make_valid may add lines or points), as one geometry."""
+    parts = [g for g in shapely.get_parts(geom) if g.geom_type in ("Polygon", "MultiPolygon")]
+    return shapely.union_all(parts) if parts else shapely.Polygon()
+
+
+def check_paddocks(paddocks: gpd.GeoDataFrame, name_column: str = "name"
+                   ) -> tuple[gpd.GeoDataFrame, list[PaddockRepair]]:
+    """Paddocks fit for counting: named, unique, polygonal, valid (repaired if needed).
+
+    Parameters
+    ----------
+    paddocks
+        Paddock features with a CRS and a name column.
+    name_column
+        The paddock name attribute.
+
+    Returns
+    -------
+    (geopandas.GeoDataFrame, list of PaddockRepair)
+        The paddocks (invalid polygons replaced by their :func:`shapely.make_valid`
+        polygonal part) and one record per repaired paddock.
+
+    Raises
+    ------
+    LabelError
+        The name column is missing (the message lists the columns there are), a name is
+        null/empty or used twice, a feature is not a polygon, or a polygon is empty or
+        collapses to nothing when repaired.
+    """
     if name_column not in paddocks.columns:
-        raise LabelError(f"paddocks have no '{name_column}' column; name each paddock")
-    poly = paddocks.geometry.geom_type.isin(["Polygon", "MultiPolygon"])
+        columns = [c for c in paddocks.columns if c != paddocks.geometry.name]
+        raise LabelError(f"paddocks have no '{name_column}' column; columns there are: "
+                         f"{', '.join(map(str, columns)) or '(none)'}; give the one holding "
+                         "paddock names with --name-column")
+    raw = paddocks[name_column]
+    null = raw.isna() | (raw.astype(str).str.strip() == "")
+    if null.any():
+        raise LabelError(f"paddock feature {int(np.flatnonzero(null.to_numpy())[0])} has no "
+                         f"name in column '{name_column}' ({int(null.sum())} unnamed); name "
+                         "every paddock, its cattle would otherwise count as outside")
+    names = raw.astype(str)
+    dup = names[names.duplicated()]
+    if len(dup):
+        raise LabelError(f"paddock name '{dup.iloc[0]}' is used by "
+                         f"{int((names == dup.iloc[0]).sum())} features; give each paddock one "
+                         "(multi)polygon and a unique name (dissolve parts in QGIS)")
+    geoms = paddocks.geometry
+    poly = geoms.geom_type.isin(["Polygon", "MultiPolygon"])
     if not poly.all():
-        bad = paddocks.index[~poly][0]
-        raise LabelError(f"paddock feature {bad} is a {paddocks.geometry.geom_type[bad]}; "
+        bad = int(np.flatnonzero(~poly.to_numpy())[0])
+        raise LabelError(f"paddock '{names.iloc[bad]}' is a {geoms.iloc[bad].geom_type}; "
                          "paddocks must be polygons")
-    names = paddocks[name_column].astype(str)
-    order = list(dict.fromkeys(names))
-    merged = [shapely.union_all(paddocks.geometry.values[(names == n).to_numpy()])
-              for n in order]
-    return gpd.GeoDataFrame({"paddock": order}, geometry=merged, crs=paddocks.crs)
+    repairs: list[PaddockRepair] = []
+    fixed = list(geoms.values)
+    lonlat = geoms.to_crs("EPSG:4326")
+    for i in np.flatnonzero(~shapely.is_valid(geoms.values)):
+        repaired = _polygonal(shapely.make_valid(fixed[i]))
+        after = shapely.make_valid(lonlat.iloc[i])
+        if repaired.is_empty:
+            raise LabelError(f"paddock '{names.iloc[i]}' is an invalid polygon "
+                             f"({shapely.is_valid_reason(fixed[i])}) with no area left when "
+                             "repaired; redraw it")
+        repairs.append(PaddockRepair(
+            name=names.iloc[i], reason=shapely.is_valid_reason(fixed[i]),
+            area_before_ha=geodesic_area_m2(lonlat.iloc[i]) / _M2_PER_HA,
+            area_after_ha=geodesic_area_m2(_polygonal(after)) / _M2_PER_HA))
+        fixed[i] = repaired
+    empty = shapely.is_empty(np.asarray(fixed, dtype=object))
+    if empty.any():
+        raise LabelError(f"paddock '{names.iloc[int(np.flatnonzero(empty)[0])]}' has an empty "
+                         "geometry; draw it or remove it")
+    out = paddocks.copy()
+    out[name_column] = names
+    return out.set_geometry(gpd.GeoSeries(fixed, index=paddocks.index, crs=paddocks.crs)), repairs
+
+
+def _dissolve(paddocks: gpd.GeoDataFrame, name_column: str) -> gpd.GeoDataFrame:
+    checked, repairs = check_paddocks(paddocks, name_column)
+    for r in repairs:
+        warnings.warn(r.message(), GeosimWarning, stacklevel=3)
+    return gpd.GeoDataFrame({"paddock": checked[name_column].tolist()},
+                            geometry=checked.geometry.values, crs=paddocks.crs)
 
 
 def cattle_per_paddock(cattle: gpd.GeoDataFrame, paddocks: gpd.GeoDataFrame, *,

@@ -354,7 +354,7 @@ def read_paddocks(path: str | os.PathLike[str], *, name_column: str = "name",
                   ) -> gpd.GeoDataFrame:
     """Read paddock polygons (any CRS) with a name column.
 
-    Features without a name column are named ``paddock_1``, ``paddock_2``, ...
+    A missing name column is a :class:`~geosim.errors.LabelError` listing the columns.
     """
     p = Path(path)
     if not p.is_file():
@@ -367,5 +367,8 @@ def read_paddocks(path: str | os.PathLike[str], *, name_column: str = "name",
     if gdf.crs is None:
         raise CRSError(f"{p}: paddocks have no CRS; assign the CRS they were drawn in")
     if name_column not in gdf.columns:
-        gdf[name_column] = [f"paddock_{i}" for i in range(1, len(gdf) + 1)]
+        columns = [c for c in gdf.columns if c != gdf.geometry.name]
+        raise LabelError(f"{p}: paddocks have no '{name_column}' column; columns there are: "
+                         f"{', '.join(map(str, columns)) or '(none)'}; give the one holding "
+                         "paddock names with --name-column")
     return gdf
