@@ -7,14 +7,16 @@ final name, and an existing output is replaced in one step.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from geosim.errors import OutputError
+from geosim.errors import GeosimError, OutputError
 
 
 @contextlib.contextmanager
@@ -48,6 +50,11 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, final)
+    except Exception as exc:
+        failure = write_failure(exc, final)
+        if failure is None:
+            raise
+        raise failure from exc
     finally:
         for leftover in (tmp, tmp.with_name(tmp.name + ".aux.xml")):
             with contextlib.suppress(FileNotFoundError):
@@ -78,3 +85,37 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+#: errno values that mean "this output cannot be written here".
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM,
+                          errno.EROFS, errno.EIO, errno.ENOTDIR, errno.EISDIR})
+#: Words in GDAL/OGR messages (rasterio, pyogrio) that mean a write failed.
+_WRITE_WORDS = ("write failed", "write or read failed", "failed to create", "attempt to create",
+                "permission denied", "no space", "file too large", "read-only file system",
+                "disk full", "could not add feature", "failed to write")
+
+
+def write_failure(exc: BaseException, path: str | os.PathLike[str]) -> OutputError | None:
+    """One-line :class:`OutputError` for a failed write of ``path``, or None if not one.
+
+    Recognises OS errors (disk full, quota, file too large, permission, read-only) and
+    GDAL/OGR write failures as rasterio and pyogrio report them; a read error or a bug in
+    the code writing the file is not translated.
+    """
+    if isinstance(exc, GeosimError):
+        return None
+    text = " ".join(str(exc).split())
+    is_write = (isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS) or \
+        any(word in text.lower() for word in _WRITE_WORDS)
+    if not is_write:
+        return None
+    final = Path(path)
+    reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else text
+    reason = reason.replace(" See previous exception for details.", "").rstrip(".")[:160]
+    try:
+        free = f"; {shutil.disk_usage(final.parent).free / 1e9:.2f} GB free there"
+    except OSError:
+        free = ""
+    return OutputError(f"{final}: cannot be written ({reason}{free}); free disk space or "
+                       "choose a writable --out, then rerun (nothing was half-written)")
