@@ -211,7 +211,9 @@ def _first_bad_block(ds: rasterio.DatasetReader, window: rasterio.windows.Window
         try:
             ds.read(window=block)
         except Exception as exc:  # noqa: BLE001 - any read failure names the block
-            return ij, block, str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            cause = exc.__cause__ or exc  # rasterio chains GDAL's own message
+            text = " ".join(str(cause).split()) or type(exc).__name__
+            return ij, block, text[:200]
     return (-1, -1), window, "read failed"
 
 
@@ -320,7 +322,8 @@ def check_extents(extents: Extents, *, uav_gsd_m: float) -> Bounds:
         where = (f"{dist[worst] / 1000:.1f} km from" if dist[worst] > 0
                  else "overlapping only some of")
         raise ExtentError(
-            f"flight {worst} does not overlap the other flights: it is {where} flight(s) "
+            f"flight {worst} does not overlap the other flights (the common extent "
+            f"{'∩'.join(fl)} is empty): it is {where} flight(s) "
             f"{others} in {extents.crs.to_string()}; check its CRS (a neighbouring UTM zone?) "
             "or remove it from the site file")
     u = _union(fl.values())
@@ -381,7 +384,7 @@ def preflight(site: SiteConfig, out: str | os.PathLike[str],
         where = site.path or "the site"
         raise ConfigError(f"{where}: no satellite scene and no parameters.q: degrading needs "
                           "a Q; add a [satellite] table (Q is calibrated against it) or set "
-                          "parameters.q (e.g. q = 2.0)")
+                          "parameters.q (e.g. q = 4.34, the paper's calibrated value)")
     extents = site_extents(site)
     check_extents(extents, uav_gsd_m=site.parameters.uav_gsd_m)
     check_rasters(site)

@@ -71,7 +71,8 @@ def test_site_without_satellite_or_q_says_what_to_do(realdata: Path, tmp_path: P
 
 def test_no_fully_covered_tile_is_a_clear_error(realdata: Path, tmp_path: Path) -> None:
     # after alignment the 2018 tile no longer covers the edges: no 20 m quadrant is whole
-    site = _sjer_site(tmp_path, realdata, years=("2017", "2018"))
+    # q is set: without it (and without a satellite) the run is refused at pre-flight
+    site = _sjer_site(tmp_path, realdata, years=("2017", "2018"), extra="q = 2.0")
     out = tmp_path / "o"
     result = _run(site, out)
     assert result.exit_code == 2
