@@ -137,3 +137,12 @@ def test_cattle_per_paddock_out_never_overwrites_its_inputs(samples_dir: Path,
                          "--out", target, timeout_s=120)
         assert_one_line_error(result, str(target), "input")
     assert tree_digest(tmp_path) == before
+
+
+def test_unwritable_out_is_refused(site_copy: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The permission branch (tests run as root here, where chmod does not stop writes)."""
+    import geosim.validate as v
+
+    monkeypatch.setattr(v.os, "access", lambda path, mode: False)
+    with pytest.raises(OutputError, match="is not writable"):
+        check_out_dir(load_site(site_copy), site_copy.parent.parent / "run")
