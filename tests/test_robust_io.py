@@ -5,6 +5,7 @@ ignores SIGXFSZ)."""
 from __future__ import annotations
 
 import errno
+import os
 import resource
 from pathlib import Path
 
@@ -65,3 +66,17 @@ def test_writers_raise_output_error_in_process(tmp_path: Path) -> None:
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_truncated_file_in_the_run_folder_is_one_line(samples_dir: Path, tmp_path: Path) -> None:
+    """Inputs are checked at pre-flight; a run-folder raster cut short fails in one line."""
+    site = copy_site(samples_dir, tmp_path / "site")
+    out = tmp_path / "run"
+    first = run_cli("run", site, "--out", out, "--only", "grid", "--only", "footprints",
+                    "--only", "align")
+    assert first.code == 0, first.stderr[-2000:]
+    aligned = out / "aligned" / "PA2.tif"
+    os.truncate(aligned, aligned.stat().st_size // 2)
+    result = run_cli("run", site, "--out", out, "--only", "tiles")
+    assert_one_line_error(result, "PA2.tif", "truncated or corrupt", "rerun the step")

@@ -13,6 +13,7 @@ import click
 from geosim import __version__
 from geosim.errors import GeosimError
 from geosim.io.atomic import write_failure
+from geosim.io.raster import read_failure
 
 # (module, attribute) of each subcommand; every module only parses and calls.
 SUBCOMMANDS: list[tuple[str, str]] = [
@@ -45,7 +46,7 @@ class GeosimGroup(click.Group):
             click.echo(f"geosim: error: {exc}", err=True)
             sys.exit(2)
         except OSError as exc:  # a write outside geosim.io (disk full, permission, …)
-            failure = write_failure(exc, exc.filename or "an output")
+            failure = write_failure(exc, exc.filename or "an output") or read_failure(exc)
             if failure is None or (ctx.obj and ctx.obj.get("debug")):
                 raise
             click.echo(f"geosim: error: {failure}", err=True)

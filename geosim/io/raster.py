@@ -218,3 +218,22 @@ def iter_windows(width: int, height: int, *, block_px: int = 2048) -> Iterator[W
     for row in range(0, height, block_px):
         for col in range(0, width, block_px):
             yield Window(col, row, min(block_px, width - col), min(block_px, height - row))
+
+
+def read_failure(exc: BaseException) -> RasterError | None:
+    """One-line :class:`RasterError` for a failed raster read in the middle of a step.
+
+    Inputs are read in full before a run (:mod:`geosim.validate`), so this is for files
+    in the run folder (a truncated tile, a grid raster cut short by a full disk): GDAL's
+    own message, which rasterio chains as the cause, names the file and the block.
+    Returns None for anything that is not a rasterio read error.
+    """
+    from rasterio.errors import RasterioError
+
+    if not isinstance(exc, RasterioError) or "read" not in str(exc).lower():
+        return None
+    cause = exc.__cause__ or exc.__context__ or exc
+    detail = " ".join(str(cause).split())[:240] or type(exc).__name__
+    return RasterError(f"a raster cannot be read: {detail}; it is truncated or corrupt: if "
+                       "it is in the run folder, delete it and rerun the step that wrote it, "
+                       "otherwise re-copy the input")
