@@ -115,7 +115,7 @@ def check_out_path(out: str | os.PathLike[str], inputs: Mapping[str, Path], *,
 
 def check_out_file(out: str | os.PathLike[str], inputs: Mapping[str, str | os.PathLike[str]],
                    *, option: str = "--out") -> Path:
-    """Refuse an output file that is one of the inputs, a folder, or in a missing place.
+    """Refuse an output file that is one of the inputs (symlinks resolved) or a folder.
 
     Returns
     -------
