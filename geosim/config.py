@@ -54,6 +54,11 @@ _FLIGHT_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 #: satellite scene so the aligned stack lands in the satellite's frame.
 ANCHORS = ("reference_flight", "satellite")
 
+#: Allowed values of ``parameters.align_model``: ``similarity`` (the paper's global
+#: rotation + scale + translation) or ``local`` (the similarity, then a smooth local
+#: displacement field, :mod:`geosim.align.field`).
+ALIGN_MODELS = ("similarity", "local")
+
 
 @dataclass(frozen=True)
 class FlightConfig:
@@ -101,6 +106,10 @@ class Parameters:
         Side of the central window used for registration, UAV pixels.
     min_align_confidence
         Registration confidence below which alignment is refused.
+    align_model
+        ``"similarity"`` (default, the paper's) or ``"local"``: after the similarity, a
+        smooth displacement field from phase correlation in a grid of windows corrects
+        stitching warps (see ``docs/alignment.md``).
     q_min, q_max
         Search bracket for the calibrated Q (dimensionless).
     min_visible_fraction
@@ -119,6 +128,7 @@ class Parameters:
     keep_partial_tiles: bool = False
     align_window_px: int = 2000
     min_align_confidence: float = 0.1
+    align_model: str = "similarity"
     q_min: float = 0.5
     q_max: float = 8.0
     min_visible_fraction: float = 0.5
@@ -138,6 +148,9 @@ class Parameters:
         if not 0.0 <= self.min_visible_fraction <= 1.0:
             raise ConfigError(f"parameters.min_visible_fraction = {self.min_visible_fraction} "
                               "must be in [0, 1]")
+        if self.align_model not in ALIGN_MODELS:
+            raise ConfigError(f"parameters.align_model = {self.align_model!r} is not allowed; "
+                              f"use one of {', '.join(repr(m) for m in ALIGN_MODELS)}")
         if not 0.0 <= self.min_align_confidence <= 1.0:
             raise ConfigError(f"parameters.min_align_confidence = {self.min_align_confidence} "
                               "must be in [0, 1]")
@@ -290,7 +303,9 @@ def _parameters(table: Mapping[str, Any], src: Path) -> Parameters:
         default = getattr(Parameters, key)
         if default is None:  # optional numbers (q)
             default = 0.0
-        if isinstance(default, bool):
+        if isinstance(default, str):
+            ok = isinstance(value, str)
+        elif isinstance(default, bool):
             ok = isinstance(value, bool)
         elif isinstance(default, int):
             ok = isinstance(value, int) and not isinstance(value, bool)

@@ -310,6 +310,42 @@ def anchor_to_satellite(site: SiteConfig, out_dir: Path, grid: SiteGrid, window:
     return t, record
 
 
+def _local_fields(site: SiteConfig, out: Path, grid: SiteGrid, awin: Window,
+                  m_grids: dict[str, np.ndarray], gpath: dict[str, Path],
+                  params: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """``align_model = "local"``: estimate each flight's displacement field and re-resample.
+
+    The field is measured between the globally aligned flight and the aligned reference
+    (``aligned/``), fitted (:mod:`geosim.align.field`), written to
+    ``alignment_field/<flight>.tif`` and the flight is resampled again from
+    ``grid/<flight>.tif`` through the composed mapping (one interpolation), replacing its
+    global-only ``aligned/<flight>.tif``. Returns the ``local_field`` record per flight.
+    """
+    from geosim.align.field import fit_field, reject_outliers
+    from geosim.prepare import local_align as la
+
+    ref_id = site.reference_flight
+    aligned_transform = grid.uav_window_transform(awin)
+    shape = (int(awin.height), int(awin.width))
+    records: dict[str, dict[str, Any]] = {}
+    for f in site.flights:
+        if f.id == ref_id:
+            continue
+        shifts = la.measure_local_shifts(out / "aligned" / f"{ref_id}.tif",
+                                         out / "aligned" / f"{f.id}.tif", what=f.id)
+        shifts = reject_outliers(shifts, min_confidence=site.parameters.min_align_confidence)
+        field = fit_field(shifts, aligned_transform, shape)
+        rel = f"alignment_field/{f.id}.tif"
+        tags = provenance_tags("align", params, [out / "aligned" / f"{ref_id}.tif", gpath[f.id]],
+                               base_dir=out)
+        la.write_field_geotiff(out / rel, field, grid.crs, tags=tags)
+        la.apply_local_alignment(gpath[f.id], out / "aligned" / f"{f.id}.tif",
+                                 m_grid=m_grids[f.id], field=field, out_window=awin,
+                                 block_px=BLOCK_PX, what=f.id, tags=tags)
+        records[f.id] = la.field_record(field, shifts, rel)
+    return records
+
+
 @_bounded_gdal_cache
 def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     """Register every flight to the reference and resample it onto the aligned grid.
@@ -376,14 +412,20 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     else:
         anchor = _identity_anchor(center_m)
     aligned_transform = grid.uav_window_transform(awin)
+    m_grids = {}
     for f in site.flights:
         if site.anchor == "satellite":
             m_grid = np.vstack([np.array(entries[f.id]["matrix_grid_px"]), [0.0, 0.0, 1.0]])
         else:
             m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
+        m_grids[f.id] = m_grid
         al.apply_alignment(gpath[f.id], out / "aligned" / f"{f.id}.tif", m_grid=m_grid,
                            out_window=awin, block_px=BLOCK_PX, what=f.id,
                            tags=provenance_tags("align", params, [gpath[f.id]], base_dir=out))
+    if p.align_model == "local":
+        params["align_model"] = "local"
+        for fid, rec in _local_fields(site, out, grid, awin, m_grids, gpath, params).items():
+            entries[fid]["local_field"] = rec
 
     # local check: remaining shift field between each aligned flight and the reference
     local: dict[str, Any] = {}
@@ -419,6 +461,7 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                                        "row_off": int(awin.row_off),
                                        "width": int(awin.width), "height": int(awin.height)}},
         "registration_window_px": win_dict,
+        "align_model": p.align_model,
         "flights": entries,
         "local_check": local,
     }
