@@ -162,6 +162,17 @@ def apply_corrections(labels: gpd.GeoDataFrame, corrections: Mapping[str, Affine
     return out
 
 
+def apply_local_fields(labels: gpd.GeoDataFrame, out_dir: Path) -> gpd.GeoDataFrame:
+    """Move labels with each flight's local alignment field (``align_model = "local"``).
+
+    A label is translated so that its centre moves as the field moves that ground
+    (:func:`geosim.prepare.local_align.move_points`); flights without a field are unchanged.
+    """
+    from geosim.prepare.local_align import label_moves
+
+    return label_moves(labels, out_dir)
+
+
 def add_feature_attributes(cattle: gpd.GeoDataFrame, *, sat_gsd_m: float,
                            ) -> gpd.GeoDataFrame:
     """Add ``cattle_id``, centre coordinates (site CRS and WGS 84) and ``below_sat_pixel``.
@@ -322,6 +333,7 @@ def run_labels(site: SiteConfig, out_dir: str | os.PathLike[str], *,
     if corrections is None:
         corrections = load_corrections(out, labelled, grid)
     aligned = apply_corrections(stated, corrections)
+    aligned = apply_local_fields(aligned, out)  # align_model = "local" only
     cattle = dedupe_labels(aligned, iou_threshold=iou_threshold)
     cattle = add_feature_attributes(cattle, sat_gsd_m=params.sat_gsd_m)
 

@@ -305,3 +305,37 @@ def field_record(field: DisplacementField, shifts: WindowShifts, path: str) -> d
                        "D is the cubic B-spline of the node values (scipy.ndimage order 3, "
                        "mode 'nearest')."),
     }
+
+
+def label_moves(labels: Any, out_dir: str | os.PathLike[str]) -> Any:
+    """Translate label geometries (a GeoDataFrame with a ``flight`` column, aligned frame
+    of the global model) by the local field of their flight, read from ``alignment.json``.
+
+    Each geometry's centroid ``q`` moves to ``p`` with ``p + D(p) = q``; flights without a
+    ``local_field`` entry (the similarity model) are returned unchanged.
+    """
+    import json
+
+    import shapely
+
+    path = os.path.join(out_dir, "alignment.json")
+    if not os.path.isfile(path):
+        return labels
+    with open(path) as fh:
+        entries = json.load(fh).get("flights", {})
+    out = labels.copy()
+    geoms = np.asarray(out.geometry.values, dtype=object).copy()
+    moved = False
+    for fid, pos in out.groupby("flight", sort=False).indices.items():
+        rec = entries.get(fid, {}).get("local_field")
+        if not rec:
+            continue
+        field = read_field_geotiff(os.path.join(out_dir, rec["path"]))
+        c = shapely.get_coordinates(shapely.centroid(geoms[pos])).reshape(-1, 2)
+        px, py = move_points(field, c[:, 0], c[:, 1])
+        geoms[pos] = [shapely.affinity.translate(g, xoff=float(dx), yoff=float(dy))
+                      for g, dx, dy in zip(geoms[pos], px - c[:, 0], py - c[:, 1], strict=True)]
+        moved = True
+    if not moved:
+        return labels
+    return out.set_geometry(type(out.geometry)(list(geoms), crs=out.crs, index=out.index))
