@@ -188,7 +188,7 @@ def _median_test(dx: np.ndarray, dy: np.ndarray, ok: np.ndarray, *, eps_px: floa
 
 def reject_outliers(shifts: WindowShifts, *, min_confidence: float = 0.1,
                     max_shift_px: float | None = None, median_threshold: float = 3.0,
-                    median_eps_px: float = 0.2) -> WindowShifts:
+                    median_eps_px: float = 0.3) -> WindowShifts:
     """Flag windows that cannot be trusted.
 
     Parameters
