@@ -530,7 +530,8 @@ def phase_correlate(reference: np.ndarray, moving: np.ndarray, *,
                     valid_moving: np.ndarray | None = None,
                     window: str | None = "hann",
                     upsample_factor: int = 100,
-                    feather_px: float | None = None) -> PhaseCorrelation:
+                    feather_px: float | None = None,
+                    max_shift_px: float | None = None) -> PhaseCorrelation:
     """Sub-pixel translation between two images by windowed phase correlation.
 
     Parameters
@@ -550,6 +551,9 @@ def phase_correlate(reference: np.ndarray, moving: np.ndarray, *,
     feather_px : float, optional
         Width in pixels of the taper at mask edges (default ``min(rows, cols) / 16``,
         at least 4).
+    max_shift_px : float, optional
+        Search the peak only among shifts with ``|dx|, |dy| <= max_shift_px`` (default:
+        everywhere the windows overlap enough).
 
     Returns
     -------
@@ -587,4 +591,11 @@ def phase_correlate(reference: np.ndarray, moving: np.ndarray, *,
     apod = window_2d(ref.shape, window)
     pr, wr = prepare(ref, vr, apod, feather_px=f_px, what="reference image")
     pm, wm = prepare(mov, vm, apod, feather_px=f_px, what="moving image")
-    return correlate_prepared(pr, pm, wr, wm, upsample_factor=int(upsample_factor))
+    allowed = None
+    if max_shift_px is not None:
+        rows, cols = ref.shape
+        dy = np.abs(sfft.fftfreq(rows, 1.0 / rows))[:, None]
+        dx = np.abs(sfft.fftfreq(cols, 1.0 / cols))[None, :]
+        allowed = (dy <= max_shift_px) & (dx <= max_shift_px)
+    return correlate_prepared(pr, pm, wr, wm, upsample_factor=int(upsample_factor),
+                              allowed=allowed)
