@@ -325,3 +325,25 @@ def test_phase_correlate_search_radius_and_diagnose_integer_shift():
     assert abs(phase_correlate(grey, far).shift_px[0] - 40) < 0.05
     limited = phase_correlate(grey, far, max_shift_px=8)
     assert max(abs(v) for v in limited.shift_px) <= 9.5 and limited.confidence < 0.2
+
+
+def test_one_regridder_file_and_array_agree(tmp_path):
+    """diagnose's in-memory regridding is prepare's (``reproject_to_array``)."""
+    from rasterio.crs import CRS
+
+    from geosim.diagnose.steps import _to_grid
+    from geosim.prepare.reproject import reproject_to_grid
+    from tests.helpers import write_raster
+
+    src = write_raster(tmp_path / "src.tif", textured_rgb(300, 300, seed=4),
+                       crs="EPSG:28356", transform=Affine(0.05, 0, 300000, 0, -0.05, 6200015))
+    crs = CRS.from_epsg(32756)
+    t = Affine(0.05, 0, 299_990.0, 0, -0.05, 6_200_010.0)  # not the source grid: resampled
+    reproject_to_grid(src, tmp_path / "g.tif", crs=crs, transform=t, shape=(256, 256))
+    with rasterio.open(tmp_path / "g.tif") as ds:
+        file_img = ds.read().astype(np.float32)
+        file_ok = ds.read_masks(1) > 0
+    arr, ok = _to_grid(src, crs, t, (256, 256), "src")
+    assert ok.any() and (~ok).any()
+    assert np.array_equal(ok, file_ok)
+    assert np.abs(arr[:, ok] - file_img[:, ok]).max() <= 0.5   # the file is rounded to uint8

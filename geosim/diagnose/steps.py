@@ -28,7 +28,7 @@ import numpy as np
 import rasterio
 from affine import Affine
 from rasterio.crs import CRS
-from rasterio.warp import Resampling, reproject, transform_bounds
+from rasterio.warp import transform_bounds
 
 from geosim.diagnose.engine import diagnose_arrays
 from geosim.diagnose.locate import laplacian_variance
@@ -305,17 +305,10 @@ def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
 
 def _to_grid(path: Path, crs: CRS, transform: Affine, shape: tuple[int, int], what: str
              ) -> tuple[np.ndarray, np.ndarray]:
-    with open_raster(path, what=what) as ds:
-        bands = image_band_indexes(ds)[:3]
-        dst = np.zeros((len(bands), *shape), np.float32)
-        for i, b in enumerate(bands):
-            reproject(rasterio.band(ds, b), dst[i], dst_transform=transform, dst_crs=crs,
-                      resampling=Resampling.cubic, dst_nodata=0)
-        m = np.zeros(shape, np.uint8)
-        reproject(ds.dataset_mask(), m, src_transform=ds.transform, src_crs=ds.crs,
-                  dst_transform=transform, dst_crs=crs, resampling=Resampling.nearest,
-                  dst_nodata=0)
-    return dst, m > 0
+    from geosim.prepare.reproject import reproject_to_array
+
+    return reproject_to_array(path, crs=crs, transform=transform, shape=shape, max_bands=3,
+                              what=what)
 
 
 def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,

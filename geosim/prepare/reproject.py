@@ -225,3 +225,34 @@ def _iter_windows(width: int, height: int, block_px: int):
     from geosim.io.raster import iter_windows
 
     return iter_windows(width, height, block_px=block_px)
+
+
+def reproject_to_array(src_path: str | os.PathLike[str], *, crs: CRS, transform: Affine,
+                       shape: tuple[int, int], max_bands: int | None = None,
+                       resampling: str = "bicubic", what: str = "raster"
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Reproject a raster file onto a (small) grid held in memory, as float32.
+
+    The same regridding as :func:`reproject_to_grid` (:func:`reproject_window`: invalid
+    source pixels excluded from the kernel, nearest-neighbour mask), for callers that need
+    the pixels rather than a file (e.g. standalone diagnosis); values are not rounded.
+
+    Returns
+    -------
+    (image, valid)
+        ``(bands, rows, cols)`` float32 (0 where invalid) and the ``(rows, cols)`` mask.
+    """
+    from geosim.io.raster import open_raster
+
+    rows, cols = shape
+    with open_raster(src_path, what=what) as src:
+        bands = image_band_indexes(src)[:max_bands]
+        swin = source_window_for(src, crs, window_bounds(Window(0, 0, cols, rows), transform))
+        if swin is None:
+            return (np.zeros((len(bands), rows, cols), np.float32),
+                    np.zeros((rows, cols), dtype=bool))
+        image = src.read(bands, window=swin).astype(np.float32)
+        valid = read_valid_mask(src, window=swin)
+        return reproject_window(image, valid, src_transform=src.window_transform(swin),
+                                src_crs=src.crs, dst_transform=transform, dst_crs=crs,
+                                dst_shape=(rows, cols), resampling=resampling_method(resampling))
