@@ -347,3 +347,33 @@ def test_one_regridder_file_and_array_agree(tmp_path):
     assert ok.any() and (~ok).any()
     assert np.array_equal(ok, file_ok)
     assert np.abs(arr[:, ok] - file_img[:, ok]).max() <= 0.5   # the file is rounded to uint8
+
+
+@pytest.mark.parametrize("model", ["similarity", "auto"])
+def test_shared_refinement_recovers_known_similarity(model):
+    """The one refinement loop (flights and satellite anchor) on a known similarity."""
+    from geosim.align import similarity_matrix
+    from geosim.align.local import window_starts
+    from geosim.align.refine import refine_with_windows
+
+    grey = textured_rgb(512, 512, seed=6).astype(np.float32).mean(axis=0)
+    centre = (255.5, 255.5)
+    truth = np.vstack([similarity_matrix(0.4, 1.003, (2.3, -1.7), centre), [0, 0, 1]])
+    # moving(q) = reference(truth⁻¹ q): reference pixel p shows at moving pixel truth @ p
+    mov = cv2.warpAffine(grey, truth[:2], (512, 512), flags=cv2.INTER_CUBIC,
+                         borderMode=cv2.BORDER_REFLECT)
+    ones = np.ones(grey.shape, bool)
+
+    def warp(m):
+        out = cv2.warpAffine(mov, m[:2], (512, 512), flags=cv2.INTER_CUBIC
+                             | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+        return out, ones
+
+    start = np.array([[1.0, 0, 2.0], [0, 1.0, -2.0], [0, 0, 1.0]])
+    s = window_starts(512, 128, 96)
+    r = refine_with_windows(grey, ones, warp, start, starts_r=s, starts_c=s, window_px=128,
+                            min_confidence=0.1, upsample_factor=20, min_valid_fraction=0.5,
+                            support_tolerance_px=1.0, model=model)
+    corners = np.array([[0, 0, 1], [511, 0, 1], [0, 511, 1], [511, 511, 1]], float).T
+    assert r.model == "similarity" and r.support > 0.9
+    assert np.abs((r.matrix - truth) @ corners)[:2].max() < 0.05

@@ -42,7 +42,7 @@ Method
    correlation after undoing its rotation/scale; the best
    :data:`N_REFINED_CANDIDATES` (fewer when one clearly wins) are refined.
 3. Refinement (iterated until the update moves no image corner by more than
-   :data:`REFINE_TOLERANCE_PX`): ``moving`` is resampled onto the reference
+   :data:`geosim.align.refine.REFINE_TOLERANCE_PX`): ``moving`` is resampled onto the reference
    with the current estimate, sub-pixel shifts are measured by phase
    correlation in a 4×4 grid of windows of 0.4 × the image side (centres 0.2,
    0.4, 0.6 and 0.8 of the side), a similarity is fitted to them by robust
@@ -72,7 +72,6 @@ import cv2
 import numpy as np
 import scipy.fft as sfft
 
-from geosim.align.local import shifts_in_windows
 from geosim.align.phasecorr import (
     DEFAULT_MIN_CONFIDENCE,
     ENVELOPE_MIN,
@@ -120,9 +119,6 @@ REFINE_WINDOW_FRACTION = 0.4
 
 #: Sub-pixel resolution of the refinement windows (1/20 px grid + quadratic fit).
 REFINE_UPSAMPLE = 20
-
-#: The refinement stops when its update moves no image corner by more than this (px).
-REFINE_TOLERANCE_PX = 0.02
 
 #: Number of best-scoring rotation/scale hypotheses that are refined and compared.
 N_REFINED_CANDIDATES = 3
@@ -484,46 +480,35 @@ def _refine(ref: np.ndarray, vr: np.ndarray, mov_filled: np.ndarray, vm: np.ndar
             ) -> tuple[np.ndarray, float, int, float]:
     """Iteratively refine a ref→moving 3×3 similarity with a grid of window shifts.
 
-    Returns ``(m, rms_px, n_windows, support)``; ``support`` is the
-    confidence-weighted fraction of the confident windows of the last
-    iteration that agree with the fitted similarity within
-    ``max(2 px, SUPPORT_TOLERANCE × window side)`` (:data:`UNCONFIRMED_SUPPORT`
-    when fewer than three windows are confident).
+    :func:`geosim.align.refine.refine_with_windows` on ``REFINE_GRID``² windows of
+    ``REFINE_WINDOW_FRACTION`` of the side; a whole-window translation when fewer than
+    three are confident. Returns ``(m, rms_px, n_windows, support)``; ``support`` is the
+    confidence-weighted fraction of the confident windows of the last iteration that
+    agree with the fitted similarity within ``max(2 px, SUPPORT_TOLERANCE × window side)``
+    (:data:`UNCONFIRMED_SUPPORT` when fewer than three windows are confident).
     """
+    from geosim.align.refine import refine_with_windows
+
     h, w = ref.shape
     win = int(REFINE_WINDOW_FRACTION * min(h, w)) & ~1
-    tol = max(2.0, SUPPORT_TOLERANCE * win)
-    rms, n_used, support = float("nan"), 0, UNCONFIRMED_SUPPORT
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-    for _ in range(max(1, max_iterations)):
-        warped, wv = _warp(mov_filled, vm, m[:2], ref.shape)
-        update = None
-        if win >= MIN_WINDOW_PX:
-            starts_r = np.round(np.linspace(0, h - win, REFINE_GRID)).astype(int)
-            starts_c = np.round(np.linspace(0, w - win, REFINE_GRID)).astype(int)
-            dx, dy, conf = shifts_in_windows(ref, warped, vr, wv, starts_r, starts_c, win,
-                                             upsample_factor=min(upsample_factor,
-                                                                 REFINE_UPSAMPLE),
-                                             min_valid_fraction=0.5)
-            ok = np.isfinite(dx) & (conf >= REFINE_MIN_CONFIDENCE)
-            if ok.sum() >= 3:
-                half = (win - 1) / 2.0
-                yy, xx = np.meshgrid(starts_r + half, starts_c + half, indexing="ij")
-                src = np.column_stack([xx[ok], yy[ok]])
-                dst = src + np.column_stack([dx[ok], dy[ok]])
-                update, rms, res = fit_similarity(src, dst, conf[ok])
-                n_used = int(ok.sum())
-                support = float(np.sum(conf[ok] * (res <= tol)) / np.sum(conf[ok]))
-        if update is None:  # too few confident windows: translation from the whole window
-            pc = _correlate_full(ref, vr, warped, wv, upsample_factor)
-            update = _translation(*pc.shift_px)
-            rms, n_used, support = float("nan"), 0, UNCONFIRMED_SUPPORT
-        new = m @ update
-        change = float(np.abs((new - m) @ corners)[:2].max())
-        m = new
-        if change < REFINE_TOLERANCE_PX:
-            break
-    return m, rms, n_used, support
+    if win >= MIN_WINDOW_PX:
+        starts_r = np.round(np.linspace(0, h - win, REFINE_GRID)).astype(int)
+        starts_c = np.round(np.linspace(0, w - win, REFINE_GRID)).astype(int)
+    else:
+        starts_r = starts_c = np.zeros(0, dtype=int)
+
+    def whole_window(warped: np.ndarray, wv: np.ndarray) -> np.ndarray:
+        pc = _correlate_full(ref, vr, warped, wv, upsample_factor)
+        return _translation(*pc.shift_px)
+
+    r = refine_with_windows(
+        ref, vr, lambda mm: _warp(mov_filled, vm, mm[:2], ref.shape), m,
+        starts_r=starts_r, starts_c=starts_c, window_px=max(win, MIN_WINDOW_PX),
+        min_confidence=REFINE_MIN_CONFIDENCE,
+        upsample_factor=min(upsample_factor, REFINE_UPSAMPLE), min_valid_fraction=0.5,
+        support_tolerance_px=max(2.0, SUPPORT_TOLERANCE * win), model="similarity",
+        max_iterations=max_iterations, fallback=whole_window)
+    return r.matrix, r.rms_px, r.n_windows, r.support
 
 
 def _solve(ref: np.ndarray, vr: np.ndarray, mov_filled: np.ndarray, vm: np.ndarray,

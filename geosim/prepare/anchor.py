@@ -94,9 +94,8 @@ MIN_EFFECT_PX = 0.1
 SUPPORT_TOLERANCE_PX = 1.0
 #: Support assigned when fewer than three windows are confident.
 UNCONFIRMED_SUPPORT = 0.5
-#: Refinement stops when the update moves no corner by more than this (px) ...
-REFINE_TOLERANCE_PX = 0.01
-#: ... or after this many iterations.
+#: Refinement stops after this many iterations (or when an update moves no corner by
+#: more than :data:`geosim.align.refine.REFINE_TOLERANCE_PX`, shared with the flights).
 MAX_ITERATIONS = 5
 #: Local windows below this phase-correlation confidence are not used.
 WINDOW_MIN_CONFIDENCE = 0.1
@@ -263,47 +262,6 @@ def _warp(image: np.ndarray, valid: np.ndarray, m: np.ndarray, shape: tuple[int,
     return np.where(ok, out, 0.0).astype(np.float32), ok
 
 
-def fit_translation(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, *,
-                    huber_px: float = 0.5, iterations: int = 5
-                    ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Robust (Huber) weighted mean translation ``dst - src``; same returns as
-    :func:`geosim.align.fit_similarity` (3×3 matrix, RMS px, residuals px)."""
-    d = np.asarray(dst, dtype=float) - np.asarray(src, dtype=float)
-    w0 = np.asarray(weights, dtype=float)
-    w = w0.copy()
-    t = np.zeros(2)
-    for _ in range(max(1, iterations)):
-        t = np.average(d, axis=0, weights=w)
-        res = np.hypot(*(d - t).T)
-        k = max(huber_px, 2.0 * float(np.median(res)))
-        w = w0 * np.where(res <= k, 1.0, k / np.maximum(res, 1e-12))
-    rms = float(np.sqrt(np.sum(w * res ** 2) / max(np.sum(w), 1e-12)))
-    return np.array([[1.0, 0.0, t[0]], [0.0, 1.0, t[1]], [0.0, 0.0, 1.0]]), rms, res
-
-
-def similarity_significance(m: np.ndarray, src: np.ndarray, rms_px: float,
-                            ) -> tuple[float, float]:
-    """How much a fitted similarity's rotation/scale part matters and how sure it is.
-
-    Returns
-    -------
-    (effect_px, sigmas)
-        ``effect_px``: displacement (px) the rotation/scale part causes at the
-        farthest point ``src`` from its centroid; ``sigmas``: its size
-        ``hypot(a - 1, b)`` in standard errors, from the residual RMS and the
-        points' lever arm (``var = rms² / (2 Σ |p − p̄|²)``, per component).
-    """
-    a = 0.5 * (m[0, 0] + m[1, 1])
-    b = 0.5 * (m[0, 1] - m[1, 0])
-    dev = math.hypot(a - 1.0, b)
-    p = np.asarray(src, dtype=float)
-    p = p - p.mean(axis=0)
-    r2 = np.sum(p * p, axis=1)
-    lever = float(np.sqrt(r2.max())) if len(r2) else 0.0
-    sigma = rms_px / math.sqrt(max(2.0 * float(r2.sum()), 1e-12))
-    return dev * lever, dev / max(sigma, 1e-12)
-
-
 def _window_layout(shape: tuple[int, int]) -> tuple[int, int]:
     """Local window side and step (satellite px) for an overlap of ``shape``."""
     side = min(shape)
@@ -344,9 +302,9 @@ def register_to_satellite(reference: np.ndarray, reference_valid: np.ndarray,
         The overlap is smaller than 32 × 32 px or flat, or the confidence is below
         ``min_confidence``.
     """
-    from geosim.align import fit_similarity
-    from geosim.align.local import local_shift_field
+    from geosim.align.local import window_starts
     from geosim.align.phasecorr import phase_correlate
+    from geosim.align.refine import refine_with_windows
 
     ref = np.asarray(reference, dtype=np.float32)
     sat = np.asarray(satellite, dtype=np.float32)
@@ -361,44 +319,22 @@ def register_to_satellite(reference: np.ndarray, reference_valid: np.ndarray,
         raise AlignmentError(f"{what}: {exc}") from exc
     m = np.array([[1.0, 0.0, coarse.shift_px[0]], [0.0, 1.0, coarse.shift_px[1]],
                   [0.0, 0.0, 1.0]])
-    h, w = sat.shape
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
     win, step = _window_layout(sat.shape)
-    use_windows = min(sat.shape) >= LOCAL_WINDOW_MIN_PX
     model: str | None = None
     rms, n_used, support = float("nan"), 0, UNCONFIRMED_SUPPORT
     signif = effect = float("nan")
-    for _ in range(MAX_ITERATIONS if use_windows else 0):
-        warped, wv = _warp(ref_p, ref_v, m, sat.shape)
-        field = local_shift_field(sat_p, warped, valid=sat_v & wv, window_px=win,
-                                  step_px=step, min_confidence=WINDOW_MIN_CONFIDENCE,
-                                  min_valid_fraction=MIN_WINDOW_VALID_FRACTION)
-        ok = field.valid
-        if ok.sum() < 3:
-            rms, n_used, support = float("nan"), 0, UNCONFIRMED_SUPPORT
-            break
-        src = field.centres[..., ::-1][ok]                      # (x, y) window centres
-        dst = src + np.column_stack([field.dx_px[ok], field.dy_px[ok]])
-        conf = field.confidence[ok]
-        upd_t, rms_t, res_t = fit_translation(src, dst, conf)
-        upd, rms, res = upd_t, rms_t, res_t
-        if model != "translation" and ok.sum() >= MIN_WINDOWS_SIMILARITY:
-            upd_s, rms_s, res_s = fit_similarity(src, dst, conf)
-            effect_px, sig = similarity_significance(upd_s, src, rms_s)
-            if model is None:
-                signif, effect = sig, effect_px
-                model = ("similarity" if sig > SIGNIFICANCE and effect_px > MIN_EFFECT_PX
-                         else "translation")
-            if model == "similarity":
-                upd, rms, res = upd_s, rms_s, res_s
-        model = model or "translation"
-        n_used = int(ok.sum())
-        support = float(np.sum(conf * (res <= SUPPORT_TOLERANCE_PX)) / np.sum(conf))
-        new = m @ upd
-        change = float(np.abs((new - m) @ corners)[:2].max())
-        m = new
-        if change < REFINE_TOLERANCE_PX:
-            break
+    if min(sat.shape) >= LOCAL_WINDOW_MIN_PX:
+        r = refine_with_windows(
+            sat_p, sat_v, lambda mm: _warp(ref_p, ref_v, mm, sat.shape), m,
+            starts_r=window_starts(sat.shape[0], win, step),
+            starts_c=window_starts(sat.shape[1], win, step), window_px=win,
+            min_confidence=WINDOW_MIN_CONFIDENCE, upsample_factor=20,
+            min_valid_fraction=MIN_WINDOW_VALID_FRACTION,
+            support_tolerance_px=SUPPORT_TOLERANCE_PX, model="auto", joint_mask=True,
+            min_windows_similarity=MIN_WINDOWS_SIMILARITY, significance=SIGNIFICANCE,
+            min_effect_px=MIN_EFFECT_PX, max_iterations=MAX_ITERATIONS)
+        m, rms, n_used, support = r.matrix, r.rms_px, r.n_windows, r.support
+        model, signif, effect = r.model, r.significance, r.effect_px
     warped, wv = _warp(ref_p, ref_v, m, sat.shape)
     try:
         final = phase_correlate(sat_p, warped, valid_reference=sat_v, valid_moving=wv)
@@ -540,6 +476,6 @@ def read_satellite_window(path: str | os.PathLike[str], window: Window
 
 
 __all__ = ["AnchorFit", "DARK_FRACTION", "HIGHPASS_SIGMA_PX", "METHOD", "anchor_affine",
-           "area_average", "compose_entry", "fit_translation", "highpass",
+           "area_average", "compose_entry", "highpass",
            "prepare_for_satellite", "read_area_averaged", "read_satellite_window",
-           "register_to_satellite", "similarity_significance", "stable_mask"]
+           "register_to_satellite", "stable_mask"]
