@@ -29,7 +29,7 @@ def _shift(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     la = a.astype(np.float32).mean(0)[crop]
     lb = b.astype(np.float32).mean(0)[crop]
     win = cv2.createHanningWindow(la.shape[::-1], cv2.CV_32F)
-    (dx, dy), _ = cv2.phaseCorrelate(la, lb, win)
+    (dx, dy), _ = cv2.phaseCorrelate(la.copy(), lb.copy(), win)  # OpenCV 5 writes into inputs
     return np.array([dx, dy])
 
 
