@@ -317,6 +317,7 @@ def label_moves(labels: Any, out_dir: str | os.PathLike[str]) -> Any:
     import json
 
     import shapely
+    from shapely.affinity import translate
 
     path = os.path.join(out_dir, "alignment.json")
     if not os.path.isfile(path):
@@ -333,7 +334,7 @@ def label_moves(labels: Any, out_dir: str | os.PathLike[str]) -> Any:
         field = read_field_geotiff(os.path.join(out_dir, rec["path"]))
         c = shapely.get_coordinates(shapely.centroid(geoms[pos])).reshape(-1, 2)
         px, py = move_points(field, c[:, 0], c[:, 1])
-        geoms[pos] = [shapely.affinity.translate(g, xoff=float(dx), yoff=float(dy))
+        geoms[pos] = [translate(g, xoff=float(dx), yoff=float(dy))
                       for g, dx, dy in zip(geoms[pos], px - c[:, 0], py - c[:, 1], strict=True)]
         moved = True
     if not moved:

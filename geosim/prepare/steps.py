@@ -471,7 +471,16 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                    f"; anchored to the satellite (shift {anchor['shift_m'][0]:+.3f}, "
                    f"{anchor['shift_m'][1]:+.3f} m, {anchor['model']}, confidence "
                    f"{anchor['confidence']:.2f})")
-    return {"reference": ref_id, "aligned_shape": [int(awin.height), int(awin.width)],
+    summary: dict[str, Any] = {}
+    fallback = {k: e["local_field"]["fallback"]["node_fraction"] for k, e in entries.items()
+                if "local_field" in e and e["local_field"]["fallback"]["node_fraction"] > 0}
+    if fallback:
+        summary["warning"] = ("local field not estimated (global similarity kept) on "
+                              + ", ".join(f"{v:.1%} of the nodes of {k}"
+                                          for k, v in fallback.items())
+                              + "; see local_field.fallback in alignment.json and the masks of "
+                              "alignment_field/")
+    return {**summary, "reference": ref_id, "aligned_shape": [int(awin.height), int(awin.width)],
             "anchor": {"to": anchor["to"], "shift_m": [round(v, 4) for v in anchor["shift_m"]],
                        "rotation_deg": round(anchor["rotation_deg"], 5),
                        "scale": round(anchor["scale"], 6),
@@ -482,9 +491,10 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                             "confidence": round(e["confidence"], 3)}
                         for k, e in entries.items()},
             "local_median_shift_px": {k: v["median_shift_px"] for k, v in local.items()},
-            "text": f"{len(entries)} flight(s) on reference {ref_id}; aligned grid "
-                    f"{int(awin.width)}×{int(awin.height)} px; largest |shift| at flight "
-                    f"{worst[1]}{anchor_text}"}
+            "align_model": p.align_model,
+            "text": f"{len(entries)} flight(s) on reference {ref_id} ({p.align_model}); "
+                    f"aligned grid {int(awin.width)}×{int(awin.height)} px; largest |shift| "
+                    f"at flight {worst[1]}{anchor_text}"}
 
 
 # --------------------------------------------------------------------------- tiles
