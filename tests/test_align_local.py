@@ -311,16 +311,14 @@ def test_similarity_model_writes_no_field(warp_runs):
     assert math.isfinite(doc["local_check"]["MOV"]["median_shift_px"])
 
 
-def test_phase_correlate_search_radius_and_diagnose_integer_shift():
-    """``max_shift_px`` limits the peak search; diagnose's whole-pixel shift uses the kernel."""
+def test_phase_correlate_search_radius():
+    """``max_shift_px`` limits the peak search."""
     from geosim.align import phase_correlate
-    from geosim.diagnose.coregister import integer_shift
 
     grey = textured_rgb(256, 256, seed=5).astype(np.float32).mean(axis=0)
     moved = np.roll(grey, (-2, 3), axis=(0, 1))       # content 3 px right, 2 px up
     assert [round(v, 2) for v in phase_correlate(grey, moved, max_shift_px=8).shift_px] == \
         [3.0, -2.0]
-    assert integer_shift(grey, moved, max_shift_px=8) == (3, -2)
     far = np.roll(grey, (0, 40), axis=(0, 1))
     assert abs(phase_correlate(grey, far).shift_px[0] - 40) < 0.05
     limited = phase_correlate(grey, far, max_shift_px=8)
