@@ -116,6 +116,10 @@ class Parameters:
         Labels clipped by a tile edge are dropped below this visible fraction.
     footprint_simplify_m
         Tolerance for simplifying traced footprints, metres.
+    keep_intermediates
+        Also write ``grid/<flight>.tif`` (each flight on the site grid). Off by default:
+        flights are resampled once, straight from the original file onto the aligned
+        grid, and registration reads them on the site grid on the fly.
     q
         Fixed Q for the degradation (dimensionless). Unset (default): degrade with the
         mean Q calibrated against the satellite scene. Set it for a site without a
@@ -133,6 +137,7 @@ class Parameters:
     q_max: float = 8.0
     min_visible_fraction: float = 0.5
     footprint_simplify_m: float = 0.5
+    keep_intermediates: bool = False
     q: float | None = None
 
     def __post_init__(self) -> None:

@@ -8,7 +8,7 @@ run folder is created. It refuses, with one :class:`~geosim.errors.GeosimError` 
 - an input raster with an unsupported band layout or data type, or a block that cannot
   be read (a truncated or corrupt TIFF), naming the file and the block
   (:func:`check_raster_bands`, :func:`check_raster_readable`; the full read is done when
-  the grid step, the only one that reads the inputs' pixels, is about to run);
+  a step that reads the inputs' pixels — grid, footprints, align — is about to run);
 - flights whose extents (transformed into the site CRS) do not overlap, naming the flight
   that is farthest from the others and its distance, and a grid larger than
   :data:`MAX_GRID_PX` (:func:`check_extents`);
@@ -388,7 +388,9 @@ def preflight(site: SiteConfig, out: str | os.PathLike[str],
                           "parameters.q (e.g. q = 4.34, the paper's calibrated value)")
     extents = site_extents(site)
     check_extents(extents, uav_gsd_m=site.parameters.uav_gsd_m)
-    if names is None or "grid" in names:  # the only step that reads the inputs' pixels
+    # the steps that read the inputs' pixels (footprints and align read the original
+    # flights since they are resampled once, straight onto the aligned grid)
+    if names is None or {"grid", "footprints", "align"} & set(names):
         check_rasters(site)
     if names is None or "labels" in names:
         from geosim.labels.sources import read_site_labels

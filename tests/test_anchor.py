@@ -415,12 +415,20 @@ def test_default_anchor_leaves_outputs_unchanged(sample_runs):
     ref = doc["flights"]["PA1"]
     assert ref["shift_m"] == [0.0, 0.0] and ref["rotation_deg"] == 0.0 and ref["scale"] == 1.0
     assert "to_reference" not in ref
-    # the reference flight is copied bit for bit (grid window → aligned raster)
+    # the reference flight is the original flight put on the site grid as stated (one
+    # warp, identity correction): bit for bit the on-the-fly site-grid read of that window
+    from geosim.prepare.onewarp import ComposedWarp, read_warped
+    from geosim.prepare.steps import read_grid
+
+    grid = read_grid(out)
+    site = sites["default"]
     w = doc["aligned_grid"]["window_px"]
-    with rasterio.open(out / "grid" / "PA1.tif") as g, \
-            rasterio.open(out / "aligned" / "PA1.tif") as al:
-        win = Window(w["col_off"], w["row_off"], w["width"], w["height"])
-        assert np.array_equal(g.read(window=win), al.read())
+    win = Window(w["col_off"], w["row_off"], w["width"], w["height"])
+    warp = ComposedWarp.for_flight(site.flight("PA1").image, grid.crs, grid.uav_transform)
+    img, ok = read_warped(warp, grid.uav_window_transform(win), (win.height, win.width))
+    with rasterio.open(out / "aligned" / "PA1.tif") as al:
+        assert np.array_equal(img, al.read())
+        assert np.array_equal(ok, al.read_masks(1) > 0)
     run = json.loads((out / "run.json").read_text())
     assert run["site"]["anchor"] == "reference_flight"
     assert run["steps"]["align"]["summary"]["anchor"]["to"] == "reference_flight"

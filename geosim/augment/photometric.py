@@ -99,6 +99,9 @@ def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 
     if work.shape[0] < 3:
         out += np.float32(value_dn * dn_max / 255.0)
         return np.clip(out, 0.0, dn_max, out=out)
+    if not hue_deg % 360.0:
+        return _sv_shift(out, work, saturation_dn=saturation_dn, value_dn=value_dn,
+                         dn_max=dn_max)
     inv = np.float32(1.0 / dn_max)
     rgb = cv2.merge([np.clip(work[i] * inv, 0.0, 1.0) for i in range(3)])
     h, sat, val = cv2.split(cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV))
@@ -115,6 +118,42 @@ def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 
     scale = np.float32(dn_max)
     for i in range(3):
         np.multiply(back[i], scale, out=out[i])
+    return np.clip(out, 0.0, dn_max, out=out)
+
+
+def _sv_shift(out: np.ndarray, work: np.ndarray, *, saturation_dn: float, value_dn: float,
+              dn_max: float) -> np.ndarray:
+    """Saturation and value shifts that keep the hue, without a colour-space round trip.
+
+    With the hue fixed, OpenCV's HSV → RGB gives each channel as ``c = V (1 − S g_c)``
+    with ``g_c = (V − c) / (V − min)`` a function of the hue alone; a grey pixel
+    (``V = min``) has hue 0 (red), i.e. ``g = (0, 1, 1)``. So shifting S and V is
+    ``c' = V' − (V − c) · V' S' / (V − min)`` (grey: ``R' = V'``, ``G' = B' = V' (1 − S')``):
+    the same numbers as the :func:`cv2.cvtColor` round trip (to float32 rounding, about
+    1e-4 DN), several times faster.
+    """
+    c = [np.clip(work[i], 0.0, dn_max) for i in range(3)]            # DN
+    v = np.maximum(c[0], c[1])
+    np.maximum(v, c[2], out=v)
+    span = np.minimum(c[0], c[1])
+    np.minimum(span, c[2], out=span)
+    np.subtract(v, span, out=span)                                   # V − min = V·S
+    tiny = np.float32(1e-30)  # x / max(y, tiny) is x / y, or 0 where x = y = 0
+    s_new = span / np.maximum(v, tiny)                               # S
+    if saturation_dn:
+        s_new += np.float32(saturation_dn / 255.0)
+        np.clip(s_new, 0.0, 1.0, out=s_new)
+    v_new = v + np.float32(value_dn * dn_max / 255.0) if value_dn else v.copy()
+    np.clip(v_new, 0.0, dn_max, out=v_new)
+    vs = v_new * s_new                                               # V' S'
+    k = vs / np.maximum(span, tiny)        # finite: (V − c) = 0 wherever span = 0
+    grey_vs = vs * (span <= 0)                                       # V' S' on grey pixels
+    for i in range(3):
+        np.subtract(v, c[i], out=c[i])
+        c[i] *= k
+        np.subtract(v_new, c[i], out=out[i])
+        if i:
+            out[i] -= grey_vs
     return np.clip(out, 0.0, dn_max, out=out)
 
 

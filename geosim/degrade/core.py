@@ -65,7 +65,7 @@ METHODS: tuple[str, ...] = ("fast", "reference")
 #: OpenCV's bicubic coefficient (Keys' a), used by cv2.resize INTER_CUBIC.
 CV2_CUBIC_A = -0.75
 
-_ROW_BLOCK = 512
+_ROW_BLOCK = 2048   # rows per forward-DCT call: long calls use every FFT worker
 
 
 # ----------------------------------------------------------------------- validation

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,7 @@ from geosim.degrade.calibrate import (
 )
 from geosim.degrade.core import METHODS, degrade_array, to_dtype
 from geosim.degrade.plot import plot_calibration
+from geosim.engine import parallel_map
 from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
 from geosim.io.atomic import write_json
 from geosim.io.paths import relative_if_inside
@@ -328,8 +330,12 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
     dict
         ``shape`` (rows, cols) and ``valid_fraction`` of the output.
     """
+    from geosim.prepare.reproject import warp_threads
+
     src, dst = Path(src), Path(dst)
-    with open_raster(src, what="UAV tile") as ds:
+    # decode the compressed tile blocks (image and mask) on every core of this worker
+    with rasterio.Env(GDAL_NUM_THREADS=str(warp_threads())), \
+            open_raster(src, what="UAV tile") as ds:
         if uav_gsd_m is not None and not math.isclose(abs(ds.transform.a), uav_gsd_m,
                                                        rel_tol=1e-6):
             raise RasterError(f"{src}: pixel size {abs(ds.transform.a)} m is not "
@@ -351,6 +357,26 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
                   band_descriptions=descriptions if all(descriptions) else None,
                   tags=tags)
     return {"shape": list(out.shape[1:]), "valid_fraction": float(valid_out.mean())}
+
+
+@dataclass(frozen=True)
+class DegradeTileTask:
+    """Degrade one UAV tile file (an engine task: picklable, writes its own output)."""
+
+    src: str
+    dst: str
+    q: float
+    phi: int
+    method: str
+    obscuration: float
+    uav_gsd_m: float | None
+    tags: dict[str, str]
+
+
+def degrade_tile_task(task: DegradeTileTask) -> dict[str, Any]:
+    """Run a :class:`DegradeTileTask` (see :func:`degrade_tile`)."""
+    return degrade_tile(task.src, task.dst, q=task.q, phi=task.phi, method=task.method,
+                        obscuration=task.obscuration, uav_gsd_m=task.uav_gsd_m, tags=task.tags)
 
 
 def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *,
@@ -405,14 +431,16 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
                        "cv2 INTER_CUBIC; symmetric boundary; no-data filled by pull-push"}
     counts: dict[str, int] = {fid: 0 for fid in site.flight_ids}
     start = time.perf_counter()
-    for fid, src in tqdm(jobs, desc="degrade", unit="tile", disable=None):
-        dst = out / "degraded" / fid / src.name
-        tags = {**provenance_tags("degrade", params, [src], base_dir=out),
-                "GEOSIM_Q": f"{q:.6g}", "GEOSIM_METHOD": method,
-                "GEOSIM_UAV_GSD_M": f"{p.uav_gsd_m:g}", "GEOSIM_SAT_GSD_M": f"{p.sat_gsd_m:g}",
-                "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem}
-        degrade_tile(src, dst, q=q, phi=p.phi, method=method, obscuration=obscuration,
-                     uav_gsd_m=p.uav_gsd_m, tags=tags)
+    tasks = [DegradeTileTask(str(src), str(out / "degraded" / fid / src.name), q, p.phi,
+                             method, obscuration, p.uav_gsd_m, {
+                                 **provenance_tags("degrade", params, [src], base_dir=out),
+                                 "GEOSIM_Q": f"{q:.6g}", "GEOSIM_METHOD": method,
+                                 "GEOSIM_UAV_GSD_M": f"{p.uav_gsd_m:g}",
+                                 "GEOSIM_SAT_GSD_M": f"{p.sat_gsd_m:g}",
+                                 "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem})
+             for fid, src in jobs]
+    parallel_map(degrade_tile_task, tasks)
+    for fid, _src in jobs:
         counts[fid] += 1
     for fid in site.flight_ids:  # drop degraded tiles whose UAV tile no longer exists
         d = out / "degraded" / fid

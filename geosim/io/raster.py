@@ -154,14 +154,17 @@ def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, cou
                    dtype: str | np.dtype, crs: CRS | str, transform: Affine,
                    nodata: float | None = None, band_descriptions: Sequence[str] | None = None,
                    tags: Mapping[str, str] | None = None, internal_mask: bool = False,
+                   creation_options: Mapping[str, str] | None = None,
                    ) -> Iterator[rasterio.io.DatasetWriter]:
     """Open a GeoTIFF for windowed writing under a temporary name; rename on success.
 
     Use this when the raster is written window by window. ``internal_mask=True``
     adds a GDAL internal mask band (write it with ``dst.write_mask``).
+    ``creation_options`` are extra GTiff options (e.g. ``ZLEVEL``, ``NUM_THREADS``).
     """
     profile = geotiff_profile(width=width, height=height, count=count, dtype=dtype, crs=crs,
                               transform=transform, nodata=nodata)
+    profile.update(creation_options or {})
     with atomic_path(path) as tmp:
         env = (rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True) if internal_mask
                else contextlib.nullcontext())

@@ -7,8 +7,10 @@
 2. **Register** each flight to the reference flight on one central window of
    ``align_window_px`` (Fourier–Mellin: rotation, scale, translation;
    :func:`geosim.align.register_similarity`). Low confidence is refused.
-3. **Apply** by resampling each flight onto the aligned grid, window by window
-   (bicubic imagery, conservative mask); the reference is copied bit for bit.
+3. **Apply** by resampling each flight once, from its original file, onto the aligned
+   grid (:mod:`geosim.prepare.onewarp`: bicubic imagery, conservative mask; the
+   correction is composed with the reprojection; :func:`apply_alignment` is the former
+   second warp of a gridded flight, kept for comparison).
    With ``site.anchor = "satellite"`` the reference flight is first registered to
    the satellite scene (:mod:`geosim.prepare.anchor`) and that transform ``T`` is
    composed into every correction (``C' = T ∘ C``): the aligned frame is then the

@@ -102,6 +102,59 @@ def raster_footprint(path: str | os.PathLike[str], *, reduce_px: int = 1,
     return mask_to_footprint(small, transform, simplify_m=simplify_m)
 
 
+def source_footprint(path: str | os.PathLike[str], site_crs, *, cell_m: float,
+                     simplify_m: float = 0.0, block_px: int = 2048) -> BaseGeometry:
+    """Footprint of a raster in another (projected) CRS, traced in the raster's own pixels.
+
+    The mask is traced on the raster's own grid, majority-reduced to cells of about
+    ``cell_m`` metres, and the polygon is densified and projected to ``site_crs``.
+    Nothing is resampled, so no intermediate copy of the raster on the site grid is
+    needed (the flights reach the site grid only through the one composed warp).
+
+    Parameters
+    ----------
+    path
+        Raster with alpha, nodata or an internal mask, any CRS.
+    site_crs
+        Target CRS (projected, metres).
+    cell_m
+        Tracing cell size, metres (e.g. the satellite GSD).
+    simplify_m
+        Simplification tolerance in the site CRS, metres (applied after projecting).
+    """
+    from pyproj import Transformer
+
+    with rasterio.open(path) as ds:
+        src_crs = ds.crs
+        # the raster's pixel size in metres, measured in the site CRS
+        tr = Transformer.from_crs(src_crs, site_crs, always_xy=True)
+        cx, cy = ds.transform @ (ds.width / 2.0, ds.height / 2.0)
+        px, py = ds.transform @ (ds.width / 2.0 + 1.0, ds.height / 2.0)
+        (x0, x1), (y0, y1) = tr.transform([cx, px], [cy, py])
+        px_m = float(np.hypot(x1 - x0, y1 - y0)) or 1.0
+        src_px = abs(ds.transform.a) or 1.0
+    reduce_px = max(1, int(round(cell_m / px_m)))
+    geom = raster_footprint(path, reduce_px=reduce_px, block_px=block_px)
+    if geom.is_empty:
+        return geom
+    if _same_crs(src_crs, site_crs):
+        out = geom
+    else:
+        dense = shapely.segmentize(geom, max_segment_length=src_px * reduce_px * 4)
+        out = shapely.make_valid(shapely.transform(
+            dense, lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1]))))
+    if simplify_m > 0:
+        out = shapely.make_valid(out.simplify(simplify_m, preserve_topology=True))
+    return _polygonal(out)
+
+
+def _same_crs(a, b) -> bool:
+    """True when two CRS definitions are the same CRS."""
+    from rasterio.crs import CRS
+
+    return CRS.from_user_input(a) == CRS.from_user_input(b)
+
+
 def _polygonal(geom: BaseGeometry) -> BaseGeometry:
     if geom.is_empty:
         return Polygon()

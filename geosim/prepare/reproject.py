@@ -40,6 +40,19 @@ _RESAMPLING = {"bicubic": Resampling.cubic, "cubic": Resampling.cubic,
                "nearest": Resampling.nearest}
 
 
+#: GDAL warp memory per call, MB: with windowed calls this bounds a warp's working set.
+WARP_MEM_LIMIT_MB = 256
+
+
+def warp_threads() -> int:
+    """Threads for one GDAL warp: ``GEOSIM_THREADS`` if set (a Dask worker of a
+    multi-process cluster sets 1), otherwise every core of the machine."""
+    env = os.environ.get("GEOSIM_THREADS", "").strip()
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    return os.cpu_count() or 1
+
+
 def resampling_method(name: str) -> Resampling:
     """GDAL resampling for a name (``bicubic``, ``lanczos``, ``bilinear``, ``nearest``)."""
     try:
@@ -117,11 +130,13 @@ def reproject_window(image: np.ndarray, valid: np.ndarray, *, src_transform: Aff
     dst = np.full((image.shape[0], *dst_shape), np.nan, dtype=np.float32)
     reproject(src, dst, src_transform=src_transform, src_crs=src_crs, src_nodata=np.nan,
               dst_transform=dst_transform, dst_crs=dst_crs, dst_nodata=np.nan,
-              resampling=resampling)
+              resampling=resampling, num_threads=warp_threads(),
+              warp_mem_limit=WARP_MEM_LIMIT_MB)
     dst_valid = np.zeros(dst_shape, dtype=np.uint8)
     reproject(valid.astype(np.uint8), dst_valid, src_transform=src_transform, src_crs=src_crs,
               src_nodata=None, dst_transform=dst_transform, dst_crs=dst_crs, dst_nodata=None,
-              resampling=Resampling.nearest)
+              resampling=Resampling.nearest, num_threads=warp_threads(),
+              warp_mem_limit=WARP_MEM_LIMIT_MB)
     ok = (dst_valid > 0) & np.all(np.isfinite(dst), axis=0)
     dst[:, ~ok] = 0
     if np.issubdtype(dtype, np.integer):

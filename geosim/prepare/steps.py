@@ -7,10 +7,12 @@ JSON-able summary (``text`` is the one-line human version).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import math
-from collections.abc import Callable
+import tempfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,22 +23,31 @@ from affine import Affine
 from rasterio.windows import Window
 
 from geosim.config import SiteConfig
+from geosim.engine import parallel_map
 from geosim.errors import AlignmentError, ExtentError, InputFileError
 from geosim.io.atomic import write_json, write_text
 from geosim.io.raster import open_raster, provenance_tags
 from geosim.io.vector import write_geojson, write_gpkg
 from geosim.prepare import alignment as al
 from geosim.prepare import anchor as anc
-from geosim.prepare.footprints import common_extent, raster_footprint
+from geosim.prepare.footprints import common_extent, raster_footprint, source_footprint
 from geosim.prepare.grid import SiteGrid, resolve_site_crs, snap_grid, union_bounds
+from geosim.prepare.onewarp import (
+    ComposedWarp,
+    WarpRasterTask,
+    read_grey_on_grid,
+    warp_raster_task,
+)
 from geosim.prepare.pairs import pair_rows, pairs_csv_text
 from geosim.prepare.reproject import bounds_in_crs, reproject_to_grid
 from geosim.prepare.tiles import (
+    CoverageTask,
+    CutTileTask,
+    coverage_task,
+    cut_tile_task,
     index_records,
     iter_tiles,
     select_tiles,
-    window_coverage,
-    write_tile,
 )
 
 #: GDAL block cache for every step, MB (GDAL's default is 5 % of RAM): bounds memory.
@@ -99,11 +110,18 @@ def run_grid(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     written: dict[str, Any] = {}
     params = {"uav_gsd_m": p.uav_gsd_m, "sat_gsd_m": p.sat_gsd_m, "crs": _crs_name(crs),
               "resampling": "bicubic"}
-    for f in site.flights:
-        written[f.id] = reproject_to_grid(
-            f.image, gdir / f"{f.id}.tif", crs=crs, transform=grid.uav_transform,
-            shape=grid.uav_shape, what=f"flight {f.id}", block_px=BLOCK_PX,
-            tags=provenance_tags("grid", params, [f.image]))
+    if p.keep_intermediates:  # flights on the site grid: inspection copies only
+        tasks = [WarpRasterTask(ComposedWarp.for_flight(f.image, crs, grid.uav_transform),
+                                str(gdir / f"{f.id}.tif"), tuple(grid.uav_transform)[:6],
+                                grid.uav_shape, BLOCK_PX,
+                                provenance_tags("grid", params, [f.image]), f"flight {f.id}")
+                 for f in site.flights]
+        for f, rec in zip(site.flights, parallel_map(warp_raster_task, tasks), strict=True):
+            written[f.id] = {"source_crs": rec.source_crs, "valid_px": rec.valid_px}
+    else:
+        for f in site.flights:
+            written[f.id] = {"source_crs": what[f.id], "valid_px": None,
+                             "resampled": "on the fly (keep_intermediates = false)"}
     if site.satellite is not None:
         written["satellite"] = reproject_to_grid(
             site.satellite.image, gdir / "satellite.tif", crs=crs, transform=grid.sat_transform,
@@ -112,8 +130,8 @@ def run_grid(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     doc = grid.to_dict()
     doc["extent_rule"] = ("union of the flights' extents, snapped outward to whole satellite "
                           "pixels; the satellite scene is cut to it")
-    doc["sources"] = {k: {"source_crs": v["source_crs"], "valid_px": v["valid_px"]}
-                      for k, v in written.items()}
+    doc["sources"] = {k: {kk: v[kk] for kk in ("source_crs", "valid_px", "resampled")
+                          if kk in v} for k, v in written.items()}
     write_json(gdir / "grid.json", doc)
     rows, cols = grid.uav_shape
     return {"crs": _crs_name(crs), "uav_shape": list(grid.uav_shape),
@@ -147,11 +165,9 @@ def run_footprints(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     p = site.parameters
     fps: dict[str, Any] = {}
     rows = []
-    for f in site.flights:
-        path = out / "grid" / f"{f.id}.tif"
-        if not path.is_file():
-            raise InputFileError(f"{path} not found; run 'geosim grid' first")
-        fps[f.id] = raster_footprint(path, reduce_px=grid.phi, simplify_m=p.footprint_simplify_m)
+    for f in site.flights:  # traced on the original flight: no copy on the site grid needed
+        fps[f.id] = source_footprint(f.image, grid.crs, cell_m=grid.sat_gsd_m,
+                                     simplify_m=p.footprint_simplify_m)
         rows.append({"id": f.id, "kind": "flight", "acquired": f.acquired.isoformat(),
                      "source": str(f.image), "area_m2": fps[f.id].area,
                      "bbox_area_m2": fps[f.id].envelope.area, "geometry": fps[f.id]})
@@ -234,6 +250,38 @@ def _identity_anchor(center_m: list[float]) -> dict[str, Any]:
             "method": ANCHOR_NONE_METHOD, "model": "identity"}
 
 
+def _flights_on_grid(site: SiteConfig, out: Path, grid: SiteGrid) -> dict[str, Path]:
+    """``grid/<flight>.tif`` of every flight, written (identity warp) where absent."""
+    paths = {f.id: out / "grid" / f"{f.id}.tif" for f in site.flights}
+    tasks = [WarpRasterTask(ComposedWarp.for_flight(f.image, grid.crs, grid.uav_transform),
+                            str(paths[f.id]), tuple(grid.uav_transform)[:6], grid.uav_shape,
+                            BLOCK_PX, provenance_tags("grid", {"resampling": "bicubic"},
+                                                      [f.image]), f"flight {f.id}")
+             for f in site.flights if not paths[f.id].is_file()]
+    parallel_map(warp_raster_task, tasks)
+    return paths
+
+
+@contextlib.contextmanager
+def _reference_on_grid(site: SiteConfig, out: Path, grid: SiteGrid, window: Window
+                       ) -> Iterator[tuple[Path, Window]]:
+    """The reference flight on the site grid over ``window``: ``grid/<ref>.tif`` when kept
+    (``keep_intermediates``), otherwise a temporary one-warp copy of that window only."""
+    ref_id = site.reference_flight
+    kept = out / "grid" / f"{ref_id}.tif"
+    if kept.is_file():
+        yield kept, window
+        return
+    ref = next(f for f in site.flights if f.id == ref_id)
+    with tempfile.TemporaryDirectory(dir=out, prefix=".anchor-") as tmp:
+        path = Path(tmp) / f"{ref_id}.tif"
+        warp_raster_task(WarpRasterTask(
+            ComposedWarp.for_flight(ref.image, grid.crs, grid.uav_transform), str(path),
+            tuple(grid.uav_window_transform(window))[:6],
+            (int(window.height), int(window.width)), BLOCK_PX, {}, f"flight {ref_id}"))
+        yield path, Window(0, 0, int(window.width), int(window.height))
+
+
 def anchor_to_satellite(site: SiteConfig, out_dir: Path, grid: SiteGrid, window: Any,
                         center_m: list[float]) -> tuple[Affine, dict[str, Any]]:
     """Register the reference flight to the satellite scene on the 0.5 m grid.
@@ -265,8 +313,9 @@ def anchor_to_satellite(site: SiteConfig, out_dir: Path, grid: SiteGrid, window:
                              "reference flight to it; run 'geosim grid' (or 'geosim run') "
                              "first")
     phi = grid.phi
-    ref_grey, ref_valid = anc.read_area_averaged(out / "grid" / f"{ref_id}.tif", window, phi,
-                                                 block_px=(BLOCK_PX // phi) * phi)
+    with _reference_on_grid(site, out, grid, window) as (ref_path, ref_win):
+        ref_grey, ref_valid = anc.read_area_averaged(ref_path, ref_win, phi,
+                                                     block_px=(BLOCK_PX // phi) * phi)
     sat_win = Window(int(window.col_off) // phi, int(window.row_off) // phi,
                      int(window.width) // phi, int(window.height) // phi)
     sat_grey, sat_valid, sat_t = anc.read_satellite_window(sat_path, sat_win)
@@ -374,8 +423,10 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     ref_id = site.reference_flight
     awin = al.aligned_window(common, grid)
     rwin = al.registration_window(common, grid, awin, p.align_window_px)
-    gpath = {f.id: out / "grid" / f"{f.id}.tif" for f in site.flights}
-    ref_grey, ref_valid = al.read_grey_window(gpath[ref_id], rwin)
+    # flights reach the site grid on the fly, through the same composed warp as the tiles
+    warps = {f.id: ComposedWarp.for_flight(f.image, grid.crs, grid.uav_transform)
+             for f in site.flights}
+    ref_grey, ref_valid = read_grey_on_grid(warps[ref_id], rwin)
     win_dict = {"col_off": int(rwin.col_off), "row_off": int(rwin.row_off),
                 "width": int(rwin.width), "height": int(rwin.height)}
     entries: dict[str, dict[str, Any]] = {}
@@ -383,7 +434,7 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
         if f.id == ref_id:
             entry = al.identity_entry(rwin, grid.uav_transform)
         else:
-            mov_grey, mov_valid = al.read_grey_window(gpath[f.id], rwin)
+            mov_grey, mov_valid = read_grey_on_grid(warps[f.id], rwin)
             reg = al.register_pair(
                 ref_grey, ref_valid, mov_grey, mov_valid, min_confidence=p.min_align_confidence,
                 what=(f"flight {f.id} against reference flight {ref_id} (window {win_dict}; "
@@ -413,17 +464,27 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
         anchor = _identity_anchor(center_m)
     aligned_transform = grid.uav_window_transform(awin)
     m_grids = {}
+    g3 = al._3x3(grid.uav_transform)
+    tasks = []
     for f in site.flights:
         if site.anchor == "satellite":
             m_grid = np.vstack([np.array(entries[f.id]["matrix_grid_px"]), [0.0, 0.0, 1.0]])
         else:
             m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
         m_grids[f.id] = m_grid
-        al.apply_alignment(gpath[f.id], out / "aligned" / f"{f.id}.tif", m_grid=m_grid,
-                           out_window=awin, block_px=BLOCK_PX, what=f.id,
-                           tags=provenance_tags("align", params, [gpath[f.id]], base_dir=out))
+        # C⁻¹ in map coordinates: aligned frame → the flight's stated frame
+        c_inv = al._affine_from_3x3(g3 @ m_grid @ np.linalg.inv(g3))
+        tasks.append(WarpRasterTask(
+            warps[f.id].with_correction(c_inv), str(out / "aligned" / f"{f.id}.tif"),
+            tuple(aligned_transform)[:6], (int(awin.height), int(awin.width)), BLOCK_PX,
+            provenance_tags("align", {**params, "resampled": "once, from the original flight"},
+                            [f.image], base_dir=out), f.id))
+    parallel_map(warp_raster_task, tasks)
     if p.align_model == "local":
         params["align_model"] = "local"
+        # the local field is still applied from flights on the site grid (see
+        # _flights_on_grid); plugging it into ComposedWarp.field would make it one warp
+        gpath = _flights_on_grid(site, out, grid)
         for fid, rec in _local_fields(site, out, grid, awin, m_grids, gpath, params).items():
             entries[fid]["local_field"] = rec
 
@@ -528,8 +589,9 @@ def run_tiles(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     for fid, path in apath.items():
         if not path.is_file():
             raise InputFileError(f"{path} not found; run 'geosim align' first (flight {fid})")
-    coverage = {fid: [window_coverage(path, t.window) for t in tiles]
-                for fid, path in apath.items()}
+    fractions = parallel_map(coverage_task, [CoverageTask(str(path), tuple(t.window for t in tiles))
+                                             for path in apath.values()])
+    coverage = dict(zip(apath, fractions, strict=True))
     selected = select_tiles(tiles, coverage, keep_partial=p.keep_partial_tiles)
     if not selected:  # refuse before anything is written: an empty tile set helps nobody
         size_m = p.tile_px * p.uav_gsd_m
@@ -538,18 +600,16 @@ def run_tiles(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
         raise ExtentError(f"{site.path or 'site'}: no tiles of {p.tile_px} px ({size_m:g} m): "
                           f"{why}; set a smaller parameters.tile_px (a multiple of "
                           f"{p.phi}) or keep_partial_tiles = true")
-    from tqdm import tqdm
-
     params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles}
-    written = 0
     keep: dict[str, set[str]] = {fid: set() for fid in apath}
     jobs = [(t, fid) for t, cov in selected for fid in apath if cov[fid] > 0]
-    for t, fid in tqdm(jobs, desc="tiles", unit="tile", disable=None):
-        write_tile(apath[fid], out / "tiles" / fid / f"{t.id}.tif", t,
-                   tags={**provenance_tags("tiles", params, [apath[fid]], base_dir=out),
-                         "GEOSIM_TILE_ID": t.id})
+    parallel_map(cut_tile_task, [
+        CutTileTask(str(apath[fid]), str(out / "tiles" / fid / f"{t.id}.tif"), t,
+                    {**provenance_tags("tiles", params, [apath[fid]], base_dir=out),
+                     "GEOSIM_TILE_ID": t.id}) for t, fid in jobs])
+    for t, fid in jobs:
         keep[fid].add(t.id)
-        written += 1
+    written = len(jobs)
     for fid, ids in keep.items():  # remove tiles left by an earlier run with other settings
         d = out / "tiles" / fid
         if d.is_dir():

@@ -12,6 +12,7 @@ at least in part is kept, with its mask (pixels outside the data are masked).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from collections.abc import Iterator, Mapping, Sequence
@@ -99,8 +100,16 @@ def select_tiles(tiles: Sequence[TileSpec], coverage: Mapping[str, Sequence[floa
 
 def write_tile(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str],
                tile: TileSpec, *, tags: Mapping[str, str] | None = None) -> Path:
-    """Cut one tile from an aligned raster into a tiled, compressed GeoTIFF with a mask."""
-    with rasterio.open(src_path) as src:
+    """Cut one tile from an aligned raster into a tiled, compressed GeoTIFF with a mask.
+
+    The aligned raster's blocks are decoded on ``GEOSIM_THREADS`` threads; compression
+    stays single-threaded, because GDAL's multi-threaded writer lays the blocks out in
+    another order, and the files must be the same bytes whatever ran them.
+    """
+    from geosim.prepare.reproject import warp_threads
+
+    threads = str(warp_threads())
+    with rasterio.Env(GDAL_NUM_THREADS=threads), rasterio.open(src_path) as src:
         img = src.read(window=tile.window, boundless=True, fill_value=0)
         mask = src.read_masks(1, window=tile.window, boundless=True)
         descriptions = [d or f"band {i}" for i, d in enumerate(src.descriptions, 1)]
@@ -115,6 +124,56 @@ def write_tile(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str
         dst.write(img)
         dst.write_mask(np.where(mask > 0, 255, 0).astype(np.uint8))
     return Path(dst_path)
+
+
+@dataclass(frozen=True)
+class CutTileTask:
+    """Cut one tile of one flight (an engine task: picklable, writes its own file)."""
+
+    src_path: str
+    dst_path: str
+    tile: TileSpec
+    tags: Mapping[str, str]
+
+
+def cut_tile_task(task: CutTileTask) -> str:
+    """Run a :class:`CutTileTask`; returns the tile path. Pixels are copied, not resampled."""
+    with _naming_read_failures(task.src_path):
+        return str(write_tile(task.src_path, task.dst_path, task.tile, tags=task.tags))
+
+
+@contextlib.contextmanager
+def _naming_read_failures(path: str) -> Iterator[None]:
+    """A failed read of ``path`` becomes one-line RasterError that names the file."""
+    from rasterio.errors import RasterioError
+
+    from geosim.io.raster import read_failure
+
+    try:
+        yield
+    except RasterioError as exc:
+        err = read_failure(exc)
+        if err is None:
+            raise
+        raise type(err)(f"{path}: {err}") from exc
+
+
+@dataclass(frozen=True)
+class CoverageTask:
+    """Valid fractions of every tile window of one aligned raster (an engine task)."""
+
+    path: str
+    windows: tuple[Window, ...]
+
+
+def coverage_task(task: CoverageTask) -> list[float]:
+    """Run a :class:`CoverageTask`: one fraction per window, one open of the raster."""
+    out = []
+    with _naming_read_failures(task.path), rasterio.open(task.path) as ds:
+        for w in task.windows:
+            m = ds.read_masks(1, window=w, boundless=True)
+            out.append(float(np.count_nonzero(m)) / m.size)
+    return out
 
 
 def index_records(selected: Sequence[tuple[TileSpec, Mapping[str, float]]], crs_name: str,

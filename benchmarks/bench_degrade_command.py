@@ -1,0 +1,152 @@
+"""Benchmark: the whole ``geosim degrade`` step against the straightforward reference.
+
+Both run on the same 5000 × 5000 RGB uint8 tiles (the Brazil pasture orthomosaic of
+../shared/realdata mirrored out, or synthetic texture), each in its own child process:
+
+* ``command``: :func:`geosim.degrade.steps.run_degrade` on a run folder holding
+  ``--tiles`` such tiles (tiled, deflate GeoTIFFs with an internal mask, as ``geosim
+  tile`` writes them): reading, degrading (the fast method), writing the 0.5 m
+  GeoTIFFs with their tags — everything the command does except starting Python;
+* ``reference``: for one tile, read it with rasterio, then the paper's operation done
+  the straightforward way (``method="reference"``: the full-resolution blur with the
+  analytic circular-aperture OTF applied by FFT of the symmetric extension — a DCT-II
+  — then ``cv2.resize`` bicubic), rounded to uint8.
+
+Reported: seconds per tile, MP/s, speed-up (reference / command) and the largest
+difference in DN between the command's output and the reference (target: ≤ 1).
+
+Usage: ``python benchmarks/bench_degrade_command.py [--size 5000] [--tiles 3]``;
+writes benchmarks/results/bench_degrade_command.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+RESULT = ROOT / "benchmarks" / "results" / "bench_degrade_command.json"
+Q = 4.34
+
+
+def setup(root: Path, size: int, n_tiles: int) -> Path:
+    """Write the site (flights = the tiles themselves), the run folder's tiles/."""
+    from affine import Affine
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_degrade import make_tile
+
+    from geosim.io.raster import write_geotiff
+
+    tile, _source = make_tile(size)
+    t = Affine(0.05, 0, 300000.0, 0, -0.05, 6200000.0)
+    lines = ['[site]', 'name = "degrade benchmark"', 'crs = "EPSG:32756"',
+             'reference_flight = "F0"', '', '[parameters]', f'tile_px = {size}', f'q = {Q}', '']
+    for i in range(n_tiles):
+        path = root / "run" / "tiles" / f"F{i}" / "r000_c000.tif"
+        write_geotiff(path, np.roll(tile, 97 * i, axis=2), transform=t, crs="EPSG:32756",
+                      mask=np.ones(tile.shape[1:], bool))
+        lines += ['[[flights]]', f'id = "F{i}"', f'image = "{path}"',
+                  f'acquired = "2021-07-15T1{i}:00:00+10:00"', '']
+    (root / "site.toml").write_text("\n".join(lines))
+    return root / "site.toml"
+
+
+def child(task: str, root: Path) -> dict:
+    import rasterio
+
+    from geosim.config import load_site
+    from geosim.degrade.core import degrade_array, to_dtype
+    from geosim.degrade.steps import run_degrade
+    from geosim.io.raster import read_valid_mask
+
+    site = load_site(root / "site.toml")
+    c0 = time.process_time()
+    if task == "command":
+        t0 = time.perf_counter()
+        run_degrade(site, root / "run")
+        seconds = time.perf_counter() - t0
+        n = len(site.flights)
+    else:
+        t0 = time.perf_counter()
+        with rasterio.open(root / "run" / "tiles" / "F0" / "r000_c000.tif") as ds:
+            img, valid = ds.read(), read_valid_mask(ds)
+        out, _ = degrade_array(img, q=Q, phi=10, valid=valid, method="reference")
+        np.save(root / "reference.npy", to_dtype(out, img.dtype))
+        seconds = time.perf_counter() - t0
+        n = 1
+    cpu = time.process_time() - c0
+    return {"task": task, "tiles": n, "seconds": round(seconds, 3),
+            "seconds_per_tile": round(seconds / n, 3), "cpu_seconds_per_tile": round(cpu / n, 3),
+            "peak_rss_mb": _peak_rss_mb()}
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process (VmHWM; ru_maxrss would include the parent's)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        pass
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=5000)
+    ap.add_argument("--tiles", type=int, default=3)
+    ap.add_argument("--child")
+    ap.add_argument("--root", type=Path)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args.child, args.root)))
+        return
+    import rasterio
+
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        setup(root, args.size, args.tiles)
+        rows = {}
+        for task in ("command", "reference"):
+            proc = subprocess.run([sys.executable, __file__, "--child", task, "--root", str(root)],
+                                  capture_output=True, text=True, check=True)
+            rows[task] = json.loads(proc.stdout.strip().splitlines()[-1])
+            print(rows[task], flush=True)
+        with rasterio.open(root / "run" / "degraded" / "F0" / "r000_c000.tif") as ds:
+            fast = ds.read().astype(int)
+        ref = np.load(root / "reference.npy").astype(int)
+    mp = args.size ** 2 / 1e6
+    doc = {"benchmark": "bench_degrade_command", "tile_px": args.size, "q": Q,
+           "tiles_in_command": args.tiles,
+           "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
+                       "load_average_at_end": [round(x, 2) for x in os.getloadavg()]},
+           "command": {**rows["command"],
+                       "mp_per_s": round(mp / rows["command"]["seconds_per_tile"], 2)},
+           "reference": {**rows["reference"],
+                         "mp_per_s": round(mp / rows["reference"]["seconds_per_tile"], 2)},
+           "speedup": round(rows["reference"]["seconds_per_tile"]
+                            / rows["command"]["seconds_per_tile"], 1),
+           "speedup_cpu_time": round(rows["reference"]["cpu_seconds_per_tile"]
+                                     / rows["command"]["cpu_seconds_per_tile"], 1),
+           "max_abs_diff_dn": int(np.abs(fast - ref).max()),
+           "fraction_pixels_differing": float((fast != ref).mean())}
+    RESULT.parent.mkdir(parents=True, exist_ok=True)
+    if args.size == 5000:
+        RESULT.write_text(json.dumps(doc, indent=2) + "\n")
+    print(json.dumps(doc, indent=2))
+
+
+if __name__ == "__main__":
+    main()

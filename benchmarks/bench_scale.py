@@ -1,0 +1,369 @@
+"""Benchmark at orthomosaic scale: a 3-flight site of SIZE × SIZE px per flight.
+
+The flights are made from real imagery (the Brazil pasture orthomosaic of
+../shared/realdata, 10 cm, mirrored out without end and upsampled to 0.05 m) or,
+without it, from synthetic multi-scale texture. They cover the same ground with
+known georeferencing errors (flight B shifted by 0.37 m east / 0.21 m south, flight C
+rotated 0.05° and shifted) and fractional grid origins, so the grid reprojection
+and the alignment both really resample. Every flight is a tiled, deflate-compressed
+RGB GeoTIFF with an internal mask, in WGS 84 / UTM 56S.
+
+Each pipeline step (grid, footprints, align, tiles, degrade at a fixed Q = 4.34)
+runs in its own child process; per step it reports wall time, throughput (MP/s:
+megapixels of the flights — or of the tiles for ``degrade`` — per second), the peak
+resident memory of the process (``ru_maxrss``) and the bytes written. In the same
+run, GDAL's own ``gdalwarp`` (Debian gdal-bin; skipped with a note when absent) does
+the same reprojection of the same flights onto the site grid (bicubic, 256 MB warp
+memory, all CPUs), and the resample-once prepare path (grid + align + tiles) is
+compared to it. Finally the per-tile cost is extrapolated to the paper's dataset
+(1869 tiles of 5000 px).
+
+``--workers N`` runs the steps on a Dask engine of N workers when geosim.engine
+provides one (the columns are skipped with a note otherwise).
+
+Usage::
+
+    python benchmarks/bench_scale.py --size 20000          # the full size (long)
+    python benchmarks/bench_scale.py --size 6000 --tile-px 2000   # a smaller run
+
+Writes benchmarks/results/bench_scale.json (or --out) and prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+REALDATA = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
+RESULT = ROOT / "benchmarks" / "results" / "bench_scale.json"
+CRS = "EPSG:32756"
+GSD_M = 0.05
+X0, Y0 = 300000.0, 6200000.0
+Q_FIXED = 4.34
+PAPER_TILES = 1869
+STEPS = ("grid", "footprints", "align", "tiles", "degrade")
+BLOCK = 2048
+
+
+# --------------------------------------------------------------------------- the site
+
+
+def _texture_period() -> tuple[np.ndarray, float, str]:
+    """(3, H, W) uint8 texture repeated by mirroring, its pixel size (m) and its origin."""
+    src = REALDATA / "brazil_pasture_10cm_epsg3395.tif"
+    if src.is_file():
+        import rasterio
+
+        with rasterio.open(src) as ds:
+            img = ds.read([1, 2, 3])
+        # one mirrored period (2H × 2W): sampling it modulo its size is seamless
+        per = np.concatenate([img, img[:, ::-1]], axis=1)
+        per = np.concatenate([per, per[:, :, ::-1]], axis=2)
+        return np.ascontiguousarray(per), 0.10, f"{src.name} (10 cm), mirrored out"
+    import cv2
+
+    rng = np.random.default_rng(0)
+    n = 4096
+    acc = np.zeros((n, n), np.float32)
+    for sigma, weight in ((1.0, 0.3), (4.0, 0.5), (16.0, 1.0)):
+        acc += weight * sigma * cv2.GaussianBlur(
+            rng.standard_normal((n, n)).astype(np.float32), (0, 0), sigma)
+    grey = np.clip(120 + 40 * (acc - acc.mean()) / acc.std(), 1, 254)
+    return np.stack([grey * 0.9, grey, grey * 0.7]).astype(np.uint8), 0.05, "synthetic texture"
+
+
+def _similarity(rotation_deg: float, shift_m: tuple[float, float], centre: tuple[float, float]):
+    from affine import Affine
+
+    th = math.radians(rotation_deg)
+    lin = Affine(math.cos(th), -math.sin(th), 0, math.sin(th), math.cos(th), 0)
+    return (Affine.translation(centre[0] + shift_m[0], centre[1] + shift_m[1]) @ lin
+            @ Affine.translation(-centre[0], -centre[1]))
+
+
+def make_flight(path: Path, size: int, offset_px: tuple[float, float], error) -> None:
+    """Write one flight: ground = texture at C(stated position), window by window."""
+    import cv2
+    from affine import Affine
+    from rasterio.windows import Window
+
+    from geosim.io.raster import create_geotiff
+
+    per, per_gsd, _ = _texture_period()
+    ph, pw = per.shape[1:]
+    hwc = [np.ascontiguousarray(per[i]) for i in range(3)]
+    t = Affine(GSD_M, 0, X0 + offset_px[0] * GSD_M, 0, -GSD_M, Y0 - offset_px[1] * GSD_M)
+    with create_geotiff(path, width=size, height=size, count=3, dtype="uint8", crs=CRS,
+                        transform=t, band_descriptions=["red", "green", "blue"],
+                        internal_mask=True) as dst:
+        for r0 in range(0, size, BLOCK):
+            for c0 in range(0, size, BLOCK):
+                h, w = min(BLOCK, size - r0), min(BLOCK, size - c0)
+                cc, rr = np.meshgrid(np.arange(c0, c0 + w) + 0.5, np.arange(r0, r0 + h) + 0.5)
+                x, y = t * (cc, rr)
+                gx, gy = error * (x, y)
+                # texture pixel coordinates, wrapped into one mirrored period
+                mx = np.mod((gx - X0) / per_gsd - 0.5, pw).astype(np.float32)
+                my = np.mod((Y0 - gy) / per_gsd - 0.5, ph).astype(np.float32)
+                out = np.stack([cv2.remap(b, mx, my, cv2.INTER_LINEAR,
+                                          borderMode=cv2.BORDER_WRAP) for b in hwc])
+                win = Window(c0, r0, w, h)
+                dst.write(out, window=win)
+                dst.write_mask(np.full((h, w), 255, np.uint8), window=win)
+
+
+def make_site(root: Path, size: int, tile_px: int) -> tuple[Path, str]:
+    """Write the three flights and site.toml under ``root``; return the site file."""
+    centre = (X0 + size * GSD_M / 2, Y0 - size * GSD_M / 2)
+    flights = {
+        "A": ((0.0, 0.0), _similarity(0.0, (0.0, 0.0), centre)),
+        "B": ((0.3, 0.6), _similarity(0.0, (0.37, -0.21), centre)),
+        "C": ((0.45, 0.15), _similarity(0.05, (-0.18, 0.29), centre)),
+    }
+    (root / "flights").mkdir(parents=True, exist_ok=True)
+    for fid, (off, err) in flights.items():
+        make_flight(root / "flights" / f"{fid}.tif", size, off, err)
+    lines = ['[site]', 'name = "scale benchmark"', f'crs = "{CRS}"', 'reference_flight = "A"',
+             '', '[parameters]', f'tile_px = {tile_px}', 'align_window_px = 2000',
+             f'q = {Q_FIXED}', 'keep_partial_tiles = true', '']
+    for i, fid in enumerate(flights):
+        lines += ['[[flights]]', f'id = "{fid}"', f'image = "flights/{fid}.tif"',
+                  f'acquired = "2021-07-15T{10 + i:02d}:00:00+10:00"', '']
+    (root / "site.toml").write_text("\n".join(lines))
+    return root / "site.toml", _texture_period()[2]
+
+
+# --------------------------------------------------------------------------- measuring
+
+
+def _dir_bytes(path: Path) -> dict[str, int]:
+    return {str(p.relative_to(path)): p.stat().st_size for p in path.rglob("*") if p.is_file()}
+
+
+def child_step(step: str, site_file: str, out: str, workers: int | None) -> dict:
+    """Run one pipeline step in this process; report its time and peak RSS."""
+    sys.path.insert(0, str(ROOT))
+    from geosim.config import load_site
+    from geosim.pipeline import run_pipeline
+
+    site = load_site(site_file)
+    engine_ctx = _engine(workers)
+    t0 = time.perf_counter()
+    with engine_ctx:
+        run_pipeline(site, out, only=[step], echo=lambda s: None)
+    seconds = time.perf_counter() - t0
+    return {"seconds": round(seconds, 2), "peak_rss_mb": _peak_rss_mb(),
+            "peak_rss_children_mb": round(
+                resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1)}
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory: VmHWM (ru_maxrss on Linux also counts the
+    parent's memory at fork time, which would charge the site generator to every step)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        pass
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+
+
+def _engine(workers: int | None):
+    """A context running tasks on a Dask engine of ``workers`` when geosim.engine has one."""
+    import contextlib
+
+    if not workers or workers <= 1:
+        return contextlib.nullcontext()
+    from geosim import engine
+
+    for name in ("local_cluster", "dask_engine", "LocalDaskEngine", "DaskEngine"):
+        factory = getattr(engine, name, None)
+        if factory is not None:
+            return engine.using(factory(workers))
+    raise RuntimeError("geosim.engine has no Dask engine yet")
+
+
+def dask_available() -> str | None:
+    """None when a Dask engine exists in geosim.engine, else why not."""
+    sys.path.insert(0, str(ROOT))
+    from geosim import engine
+
+    names = ("local_cluster", "dask_engine", "LocalDaskEngine", "DaskEngine")
+    if any(hasattr(engine, n) for n in names):
+        return None
+    return ("geosim.engine offers no Dask engine on this branch (the engine work is done in "
+            "parallel); the 1-vs-2-worker columns are skipped")
+
+
+def run_gdalwarp(flights: list[Path], out_dir: Path, grid: dict) -> dict:
+    """Time gdalwarp reprojecting every flight onto the site UAV grid (bicubic)."""
+    exe = shutil.which("gdalwarp")
+    if exe is None:
+        return {"skipped": "gdalwarp not found (install Debian's gdal-bin)"}
+    t = grid["uav"]["transform"]
+    rows, cols = grid["uav"]["shape"]
+    xmin, ymax = t[2], t[5]
+    xmax, ymin = xmin + cols * t[0], ymax + rows * t[4]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    for f in flights:
+        subprocess.run([exe, "-q", "-overwrite", "-r", "cubic", "-t_srs", CRS, "-tr", str(t[0]),
+                        str(-t[4]), "-te", str(xmin), str(ymin), str(xmax), str(ymax),
+                        "-wm", "256", "-multi", "-wo", "NUM_THREADS=ALL_CPUS",
+                        "-co", "TILED=YES", "-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2",
+                        "-co", "BIGTIFF=IF_SAFER", str(f), str(out_dir / f.name)], check=True)
+    seconds = time.perf_counter() - t0
+    written = sum(p.stat().st_size for p in out_dir.glob("*.tif"))
+    return {"seconds": round(seconds, 2), "bytes_written": written,
+            "command": "gdalwarp -r cubic -tr 0.05 0.05 -te <site grid> -wm 256 -multi "
+                       "-wo NUM_THREADS=ALL_CPUS -co TILED=YES -co COMPRESS=DEFLATE"}
+
+
+def run(size: int, tile_px: int, workers: int | None, keep: bool) -> dict:
+    tmp = Path(tempfile.mkdtemp(prefix="geosim-scale-"))
+    try:
+        t0 = time.perf_counter()
+        site_file, imagery = make_site(tmp / "site", size, tile_px)
+        make_s = time.perf_counter() - t0
+        out = tmp / "run"
+        flight_mp = 3 * size * size / 1e6
+        rows = []
+        for step in STEPS:
+            before = _dir_bytes(out) if out.is_dir() else {}
+            cmd = [sys.executable, __file__, "--child", step, "--site", str(site_file),
+                   "--run", str(out)] + (["--workers", str(workers)] if workers else [])
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise RuntimeError(f"step {step} failed:\n{proc.stderr[-3000:]}")
+            rec = json.loads(proc.stdout.strip().splitlines()[-1])
+            after = _dir_bytes(out)
+            rec["bytes_written"] = sum(v for k, v in after.items() if before.get(k) != v)
+            if step == "degrade":
+                tiles = list((out / "tiles").glob("*/*.tif"))
+                mp = len(tiles) * tile_px * tile_px / 1e6
+                rec["tiles"] = len(tiles)
+            else:
+                mp = flight_mp
+            rec["mp_per_s"] = round(mp / rec["seconds"], 2)
+            rows.append({"step": step, **rec})
+            print(f"{step}: {rec}", flush=True)
+        grid = json.loads((out / "grid" / "grid.json").read_text())
+        gw = run_gdalwarp(sorted((tmp / "site" / "flights").glob("*.tif")), tmp / "gdalwarp",
+                          grid)
+        print(f"gdalwarp: {gw}", flush=True)
+        n_tiles = len(list((out / "tiles").glob("*/*.tif")))
+        doc = summarise(rows, gw, size, tile_px, n_tiles, imagery, make_s, workers)
+    finally:
+        if keep:
+            print(f"kept {tmp}")
+        else:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return doc
+
+
+def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
+              imagery: str, make_s: float, workers: int | None) -> dict:
+    by = {r["step"]: r for r in rows}
+    prepare_s = sum(by[s]["seconds"] for s in ("grid", "align", "tiles"))
+    doc: dict = {
+        "benchmark": "bench_scale", "flights": 3, "flight_px": size, "tile_px": tile_px,
+        "tiles_per_flight": n_tiles // 3 if n_tiles else 0, "imagery": imagery,
+        "site_generation_s": round(make_s, 1),
+        "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
+                    "platform": platform.platform(),
+                    "load_average_at_end": [round(x, 2) for x in os.getloadavg()]},
+        "workers": workers or 1, "steps": rows, "gdalwarp": gw,
+        "peak_rss_mb_max": max(r["peak_rss_mb"] for r in rows),
+        "prepare_resample_once_s": round(prepare_s, 2),
+    }
+    note = dask_available()
+    if note:
+        doc["workers_note"] = note
+    if "seconds" in gw:
+        doc["prepare_vs_gdalwarp"] = round(prepare_s / gw["seconds"], 2)
+    if n_tiles:
+        # per 5000-px tile of one flight: prepare (per MP of flight) and degrade (per tile)
+        prep_per_mp = prepare_s / (3 * size * size / 1e6)
+        degrade_per_tile_mp = by["degrade"]["seconds"] / (n_tiles * tile_px * tile_px / 1e6)
+        tile_mp = 25.0
+        hours = PAPER_TILES * tile_mp * (prep_per_mp + degrade_per_tile_mp) / 3600
+        doc["extrapolation"] = {
+            "paper_tiles": PAPER_TILES, "tile_px": 5000,
+            "prepare_s_per_mp": round(prep_per_mp, 4),
+            "degrade_s_per_mp": round(degrade_per_tile_mp, 4),
+            "hours_prepare_plus_degrade": round(hours, 2),
+            "assumes": "cost proportional to megapixels; one process; the paper's 1869 tiles "
+                       "counted as 1869 × 25 MP of flight imagery to prepare and degrade",
+        }
+    return doc
+
+
+def markdown(doc: dict) -> str:
+    lines = [f"{doc['flights']} flights of {doc['flight_px']}² px ({doc['imagery']}), tiles of "
+             f"{doc['tile_px']} px, {doc['workers']} worker(s), {doc['machine']['cpus']} CPUs",
+             "", "| step | time (s) | MP/s | peak RSS (MB) | written (MB) |",
+             "|---|---|---|---|---|"]
+    for r in doc["steps"]:
+        lines.append(f"| {r['step']} | {r['seconds']} | {r['mp_per_s']} | {r['peak_rss_mb']} | "
+                     f"{r['bytes_written'] / 1e6:.0f} |")
+    gw = doc["gdalwarp"]
+    if "seconds" in gw:
+        lines.append(f"| gdalwarp (same reprojection) | {gw['seconds']} | "
+                     f"{3 * doc['flight_px'] ** 2 / 1e6 / gw['seconds']:.2f} | – | "
+                     f"{gw['bytes_written'] / 1e6:.0f} |")
+        lines.append("")
+        lines.append(f"Resample-once prepare (grid + align + tiles): "
+                     f"{doc['prepare_resample_once_s']} s = {doc['prepare_vs_gdalwarp']}× "
+                     "one gdalwarp reprojection of the same flights.")
+    else:
+        lines += ["", f"gdalwarp: {gw.get('skipped')}"]
+    if "extrapolation" in doc:
+        e = doc["extrapolation"]
+        lines.append(f"Extrapolated to the paper's {e['paper_tiles']} tiles of 5000 px: "
+                     f"{e['hours_prepare_plus_degrade']} h for prepare + degrade "
+                     "(one process).")
+    if doc.get("workers_note"):
+        lines.append(f"Workers: {doc['workers_note']}.")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=20000, help="flight side, px (default 20000)")
+    ap.add_argument("--tile-px", type=int, default=5000, help="tile side, px (default 5000)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="run the steps on a Dask engine of N workers (when available)")
+    ap.add_argument("--out", type=Path, default=RESULT)
+    ap.add_argument("--keep", action="store_true", help="keep the temporary site and run")
+    ap.add_argument("--child")
+    ap.add_argument("--site")
+    ap.add_argument("--run")
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child_step(args.child, args.site, args.run, args.workers)))
+        return
+    if args.workers and args.workers > 1 and dask_available():
+        print(f"note: {dask_available()}; running in-process", flush=True)
+        args.workers = None
+    doc = run(args.size, args.tile_px, args.workers, args.keep)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(doc, indent=2) + "\n")
+    print(markdown(doc))
+
+
+if __name__ == "__main__":
+    main()
