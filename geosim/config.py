@@ -45,6 +45,8 @@ from pathlib import Path
 from typing import Any
 
 from geosim.errors import ConfigError, InputFileError
+from geosim.io.atomic import to_jsonable
+from geosim.io.paths import safe_name, unique_name
 
 _FLIGHT_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
@@ -220,17 +222,7 @@ class SiteConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able description (for run.json and provenance)."""
-        def conv(v: Any) -> Any:
-            if isinstance(v, Path):
-                return str(v)
-            if isinstance(v, dt.datetime):
-                return v.isoformat()
-            if isinstance(v, Mapping):
-                return {k: conv(x) for k, x in v.items()}
-            if isinstance(v, (list, tuple)):
-                return [conv(x) for x in v]
-            return v
-        out = conv(dataclasses.asdict(self))
+        out = to_jsonable(dataclasses.asdict(self))
         out["parameters"]["phi"] = self.parameters.phi
         return out
 
@@ -472,11 +464,7 @@ def site_from_images(uav_images: Sequence[str | Path], satellite: str | Path | N
         path = Path(p).resolve()
         if not path.is_file():
             raise InputFileError(f"--uav {p}: file does not exist; check the path")
-        stem = re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem) or "flight"
-        fid, k = stem, 2
-        while fid in used:
-            fid, k = f"{stem}_{k}", k + 1
-        used.add(fid)
+        fid = unique_name(safe_name(path.stem, default="flight"), used)
         _check_raster_has_crs(path, "--uav", path)
         mtime = dt.datetime.fromtimestamp(path.stat().st_mtime, tz=dt.UTC)
         flights.append(FlightConfig(id=fid, image=path, acquired=mtime))

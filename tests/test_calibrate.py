@@ -196,12 +196,13 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_run_calibrate_recovers_q_and_writes_json_and_figure(run_dir: Path) -> None:
     site = _site({k: run_dir / "aligned" / f"{k}.tif" for k in "ABC"},
                  run_dir / "grid" / "satellite.tif")
-    summary = run_calibrate(site, run_dir)
+    result = run_calibrate(site, run_dir)
+    summary = result.record
     assert summary["q"]["A"] == pytest.approx(3.0, rel=0.02)
     assert summary["q"]["B"] == pytest.approx(3.0, rel=0.02)
     assert summary["not_calibrated"] == ["C"]
     assert summary["mean_q"] == pytest.approx((summary["q"]["A"] + summary["q"]["B"]) / 2)
-    assert "geosim diagnose" in summary["warning"]  # Q = 3 is above real cameras' 0.5–2
+    assert "geosim diagnose" in result.warnings[0]  # Q = 3 is above real cameras' 0.5–2
     doc = json.loads((run_dir / "calibration.json").read_text())
     assert doc["mean_q"] == pytest.approx(summary["mean_q"])
     by_id = {f["flight"]: f for f in doc["flights"]}

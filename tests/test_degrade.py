@@ -189,7 +189,7 @@ def test_degraded_tiles_have_exact_transforms_masks_and_tags(tmp_path: Path) -> 
     out = tmp_path / "run"
     ids = _write_tiles(out, "PA1", scene, UAV_TF, nodata_box=(slice(0, 95), slice(0, 140)))
     site = _site(tmp_path, {"PA1": out / "tiles" / "PA1" / f"{ids[0]}.tif"})
-    summary = run_degrade(site, out, q=2.5)
+    summary = run_degrade(site, out, q=2.5).record
     assert summary["tiles"] == 2 and summary["q"] == 2.5 and summary["q_source"] == "user"
     for tid in ids:
         src_path = out / "tiles" / "PA1" / f"{tid}.tif"
@@ -310,9 +310,9 @@ def test_run_degrade_uses_calibrated_mean_q(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match="--q"):
         run_degrade(site, out)
     (out / "calibration.json").write_text(json.dumps({"mean_q": 4.34}))
-    summary = run_degrade(site, out, method="reference")
-    assert summary["q"] == 4.34 and summary["q_source"] == "calibration.json"
-    assert "geosim diagnose" in summary["warning"]
+    result = run_degrade(site, out, method="reference")
+    assert result.record["q"] == 4.34 and result.record["q_source"] == "calibration.json"
+    assert "geosim diagnose" in result.warnings[0]
     with rasterio.open(out / "degraded" / "A" / "r000_c000.tif") as ds:
         assert float(ds.tags()["GEOSIM_Q"]) == 4.34
         got = ds.read()
@@ -334,11 +334,15 @@ def test_run_degrade_bad_inputs(tmp_path: Path) -> None:
     wrong = _site(tmp_path, {"A": tmp_path / "a.tif"}, uav_gsd_m=0.1, sat_gsd_m=1.0)
     with pytest.raises(RasterError, match="uav_gsd_m"):
         run_degrade(wrong, out, q=2.0)
-    stale = out / "degraded" / "A" / "r009_c009.tif"
-    stale.parent.mkdir(parents=True)
-    stale.write_bytes(b"old")
-    run_degrade(site, out, q=2.0)
-    assert not stale.exists()  # a tile that no longer exists is not left behind
+    foreign = out / "degraded" / "A" / "r009_c009.tif"
+    foreign.parent.mkdir(parents=True)
+    foreign.write_bytes(b"old")
+    result = run_degrade(site, out, q=2.0)
+    # a file geosim did not write (not in run.json) is never deleted nor listed; stale
+    # degraded tiles of an earlier run are removed by the runner (test_run_records.py)
+    assert foreign.read_bytes() == b"old"
+    assert "degraded/A/r009_c009.tif" not in result.outputs
+    assert "degraded/A/r000_c000.tif" in result.outputs
 
 
 def test_cli_degrade(tmp_path: Path) -> None:

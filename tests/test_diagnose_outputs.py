@@ -112,7 +112,7 @@ def test_run_diagnose_on_run_folder(uav, tmp_path):
     write_json(tmp_path / "calibration.json", {"q": 1.9})
     site = SimpleNamespace(reference_flight="F1", flights=[SimpleNamespace(id="F1")],
                            parameters=SimpleNamespace(phi=PHI, q_min=0.5, q_max=8.0))
-    summary = run_diagnose(site, tmp_path)
+    summary = run_diagnose(site, tmp_path).record
     assert summary["q_base"] == pytest.approx(1.9)
     assert "motion_smear" in summary["effects"]
     got = summary["effects"]["motion_smear"]
@@ -145,6 +145,11 @@ def test_cli_standalone_and_errors(uav, tmp_path):
     assert [e["name"] for e in doc["effects"]] == []  # a control through the whole I/O path
     with rasterio.open(tmp_path / "out" / "sim_refined.tif") as ds:
         assert ds.crs.to_epsg() == 32756
+    record = json.loads((tmp_path / "out" / "run.json").read_text())  # recorded like a run
+    step = record["steps"]["diagnose_images"]
+    assert record["status"] == "ok" and step["status"] == "ok"
+    assert "diagnosis.json" in step["outputs"] and "run.json" not in step["outputs"]
+    assert record["inputs"]["satellite.image"]["path"] == str(tmp_path / "sat.tif")
     res = runner.invoke(cli, ["diagnose", "--uav", str(tmp_path / "uav.tif"), "--out",
                               str(tmp_path / "o2")])
     assert res.exit_code == 2

@@ -88,3 +88,24 @@ def test_provenance_sources_relative_to_the_run_folder(tmp_path: Path) -> None:
     outside = tmp_path / "inputs" / "PA1.tif"
     tags = provenance_tags("tiles", {}, [inside, outside], base_dir=tmp_path / "run")
     assert json.loads(tags["GEOSIM_SOURCES"]) == ["aligned/PA1.tif", str(outside)]
+
+
+def test_read_raster_window_round_trip(tmp_path: Path) -> None:
+    """read_raster gives the window's pixels, mask and transform (written with plain rasterio)."""
+    from affine import Affine
+    from rasterio.windows import Window
+
+    from geosim.io.raster import read_raster
+    from tests.helpers import textured_rgb, write_raster
+
+    img = textured_rgb(40, 60, seed=3)
+    img[:, :5, :] = 0  # nodata rows
+    t = Affine(0.05, 0, 250000.0, 0, -0.05, 6190000.0)
+    path = write_raster(tmp_path / "r.tif", img, transform=t, nodata=0)
+    data = read_raster(path, window=Window(10, 2, 30, 20))
+    np.testing.assert_array_equal(data.array, img[:, 2:22, 10:40])
+    assert data.valid.shape == (20, 30) and not data.valid[:3].any() and data.valid[3:].all()
+    assert data.transform == Affine(0.05, 0, 250000.0 + 10 * 0.05, 0, -0.05,
+                                    6190000.0 - 2 * 0.05)
+    assert data.crs.to_epsg() == 28356 and data.nodata == 0 and data.shape == (20, 30)
+    assert data.band_names == (None, None, None)

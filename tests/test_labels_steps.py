@@ -134,7 +134,7 @@ CORRECTIONS = {"PA1": Affine.identity(), "PA2": correction()}
 def run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("labels_step")
     site, out = build_run(tmp)
-    summary = run_labels(site, out, corrections=CORRECTIONS)
+    summary = run_labels(site, out, corrections=CORRECTIONS).record
     return site, out, summary
 
 
@@ -317,8 +317,8 @@ def test_site_without_labels_is_a_no_op(tmp_path):
     site, out = build_run(tmp_path)
     bare = SiteConfig(path=None, name="bare", crs=SITE_CRS, reference_flight="PA3",
                       flights=(site.flights[2],), parameters=site.parameters)
-    summary = run_labels(bare, out)
-    assert summary["cattle"] == 0 and "no flight has labels" in summary["text"]
+    result = run_labels(bare, out)
+    assert result.record["cattle"] == 0 and "no flight has labels" in result.summary
     assert not (out / "labels").exists()
 
 

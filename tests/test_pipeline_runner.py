@@ -13,6 +13,7 @@ import pytest
 from geosim.config import site_from_images
 from geosim.errors import ConfigError
 from geosim.pipeline import Step, run_pipeline, select_steps
+from geosim.result import StepResult
 from tests.helpers import textured_rgb, write_raster
 
 
@@ -24,7 +25,7 @@ def fake_steps(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     def ok(site, out):  # noqa: ANN001, ANN202
         calls.append("ok")
         (out / "ok.txt").write_text("x")
-        return {"written": 1}
+        return StepResult("wrote ok.txt", outputs=["ok.txt"], record={"written": 1})
 
     def boom(site, out):  # noqa: ANN001, ANN202
         raise RuntimeError("step exploded")

@@ -17,6 +17,7 @@ from rasterio.crs import CRS
 from geosim.config import FlightConfig, Parameters, SiteConfig
 from geosim.io.atomic import write_json
 from geosim.io.raster import write_geotiff
+from geosim.pipeline import run_pipeline
 from geosim.prepare.grid import snap_grid
 from geosim.prepare.pairs import COLUMNS, pair_rows
 from geosim.prepare.steps import run_pairs, run_tiles
@@ -73,7 +74,7 @@ def test_tile_ids_and_transforms_are_whole_tile_offsets():
 
 def test_tiles_full_coverage_only(tmp_path):
     site, out, info = make_run(tmp_path, keep_partial=False)
-    summary = run_tiles(site, out)
+    summary = run_tiles(site, out).record
     at = info["aligned_transform"]
     # 270×380 px aligned grid, 120 px tiles: full rows 0-1, full cols 0-2; PA3 misses col 0's
     # left edge, PA2 misses the top of c002 in row 0 → kept: r000_c001, r001_c001, r001_c002
@@ -112,7 +113,7 @@ def test_tiles_full_coverage_only(tmp_path):
 
 def test_keep_partial_tiles_with_mask_and_pairs(tmp_path):
     site, out, info = make_run(tmp_path, keep_partial=True)
-    summary = run_tiles(site, out)
+    summary = run_tiles(site, out).record
     assert summary["tiles"] == 3 * 4                       # every tile touches data
     with rasterio.open(out / "tiles" / "PA2" / "r002_c003.tif") as ds:
         m = ds.dataset_mask() > 0
@@ -123,14 +124,17 @@ def test_keep_partial_tiles_with_mask_and_pairs(tmp_path):
     with rasterio.open(out / "tiles" / "PA2" / "r000_c002.tif") as ds:
         m = ds.dataset_mask() > 0
         assert not m[:10, 10:].any() and m[10:].all()
-    # an earlier run's tiles that are no longer selected are removed
+    # an earlier run's tiles that are no longer selected are removed (by the runner, which
+    # knows from run.json which files the earlier run wrote)
+    run_pipeline(site, out, only=["tiles"], echo=lambda s: None)
     site2, _, _ = make_run(tmp_path / "again", keep_partial=False)
     site2 = SiteConfig(**{**site2.__dict__, "flights": site.flights})
-    run_tiles(site2, out)
+    record = run_pipeline(site2, out, only=["tiles"], echo=lambda s: None)
     assert not (out / "tiles" / "PA2" / "r002_c003.tif").exists()
+    assert "tiles/PA2/r002_c003.tif" in record["cleaned"]["stale_outputs"]
 
     run_tiles(site, out)
-    pairs = run_pairs(site, out)
+    pairs = run_pairs(site, out).record
     with open(out / "pairs.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert tuple(rows[0]) == COLUMNS

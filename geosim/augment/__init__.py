@@ -13,11 +13,11 @@ from geosim.augment.geometry import Boxes
 from geosim.augment.pipeline import (
     AugImage,
     AugmentResult,
+    AugmentStep,
     Pipeline,
-    Step,
     default_config_path,
     load_pipeline,
 )
 
 __all__ = ["FUNCTIONS", "AugImage", "AugmentFunction", "AugmentResult", "Boxes", "Pipeline",
-           "Step", "default_config_path", "load_pipeline"]
+           "AugmentStep", "default_config_path", "load_pipeline"]

@@ -1,6 +1,6 @@
 """Files of the augmentation step: pairs.csv rows, tiles, YOLO labels and outputs.
 
-Inputs follow the run-folder contract (team brief): ``DIR/pairs.csv`` lists the
+Inputs follow the run-folder layout (:class:`geosim.rundir.RunDir`): ``DIR/pairs.csv`` lists the
 pairs, ``DIR/tiles/<flight>/<tile_id>.tif`` and
 ``DIR/degraded/<flight>/<tile_id>.tif`` hold the UAV and 0.5 m tiles, and
 ``DIR/labels/yolo/<flight>/<tile_id>.txt`` / ``DIR/labels/yolo_0.5m/...`` their
@@ -30,20 +30,22 @@ import cv2
 import numpy as np
 import rasterio
 from affine import Affine
-from rasterio.crs import CRS
 
 from geosim.augment.geometry import Boxes
 from geosim.augment.pipeline import AugImage
 from geosim.errors import InputFileError, LabelError, OutputError, RasterError
 from geosim.io.atomic import atomic_path, write_text
+from geosim.io.georef import Georef
 from geosim.io.raster import (
     BLOCK_PX,
     alpha_band_index,
     image_band_indexes,
     open_raster,
-    read_valid_mask,
+    read_raster,
     write_geotiff,
 )
+from geosim.prepare.pairs import COLUMNS
+from geosim.rundir import YOLO_SUBDIRS, RunDir
 
 __all__ = [
     "PAIRS_COLUMNS",
@@ -60,12 +62,11 @@ __all__ = [
     "write_yolo",
 ]
 
-#: Columns of pairs.csv (team brief).
-PAIRS_COLUMNS = ("pair_id", "tile_id", "flight_a", "flight_b", "acquired_a", "acquired_b",
-                 "path_a", "path_b", "minx", "miny", "maxx", "maxy", "crs")
+#: Columns of pairs.csv (:data:`geosim.prepare.pairs.COLUMNS`).
+PAIRS_COLUMNS = COLUMNS
 
-#: Resolutions and where their tiles and labels live in a run folder.
-RESOLUTIONS = {"uav": ("tiles", "yolo"), "0.5m": ("degraded", "yolo_0.5m")}
+#: Tile resolutions of a run folder (:class:`geosim.rundir.RunDir`).
+RESOLUTIONS = tuple(YOLO_SUBDIRS)
 
 
 @dataclass(frozen=True)
@@ -81,19 +82,6 @@ class PairRow:
     bounds: tuple[float, float, float, float]
     crs: str
     line: int
-
-
-@dataclass(frozen=True)
-class Georef:
-    """Where a tile sits on the map: CRS and pixel-edge geotransform."""
-
-    crs: CRS
-    transform: Affine
-
-    @property
-    def gsd_m(self) -> float:
-        """Pixel size along x, map units (metres in the projected site CRS)."""
-        return float(math.hypot(self.transform.a, self.transform.d))
 
 
 @dataclass(frozen=True)
@@ -150,17 +138,16 @@ def tile_and_label_paths(run_dir: Path, row: PairRow, resolution: str
     UAV images come from the pairs.csv paths; 0.5 m ones from
     ``degraded/<flight>/<tile_id>.tif``.
     """
+    run = RunDir.of(run_dir)
     if resolution not in RESOLUTIONS:
         raise ValueError(f"resolution must be one of {', '.join(RESOLUTIONS)}")
-    tiles, labels = RESOLUTIONS[resolution]
     if resolution == "uav":
-        img_a, img_b = run_dir / row.path_a, run_dir / row.path_b
+        img_a, img_b = run.root / row.path_a, run.root / row.path_b
     else:
-        img_a = run_dir / tiles / row.flight_a / f"{row.tile_id}.tif"
-        img_b = run_dir / tiles / row.flight_b / f"{row.tile_id}.tif"
-    lab = run_dir / "labels" / labels
-    return (img_a, img_b, lab / row.flight_a / f"{row.tile_id}.txt",
-            lab / row.flight_b / f"{row.tile_id}.txt")
+        img_a = run.tile_at(resolution, row.flight_a, row.tile_id)
+        img_b = run.tile_at(resolution, row.flight_b, row.tile_id)
+    return (img_a, img_b, run.yolo_file(resolution, row.flight_a, row.tile_id),
+            run.yolo_file(resolution, row.flight_b, row.tile_id))
 
 
 def read_tile(path: Path, *, what: str) -> Tile:
@@ -171,18 +158,16 @@ def read_tile(path: Path, *, what: str) -> Tile:
     with open_raster(path, what=what, require_crs=False) as ds:
         bands = image_band_indexes(ds)
         dtype = np.dtype(ds.dtypes[bands[0] - 1])
-        if dtype == np.float64:
-            dtype = np.dtype(np.float32)
-        if dtype not in (np.uint8, np.uint16, np.int16, np.float32):
-            raise RasterError(f"{what}: {path} has data type {dtype}; augmentation supports "
-                              "uint8, uint16, int16 and float32 images; convert it first")
-        image = ds.read(bands, out_dtype=dtype)
-        mask = read_valid_mask(ds)
         georef = None
         if ds.crs is not None and ds.transform != Affine.identity():
-            georef = Georef(ds.crs, ds.transform)
-        desc = tuple(ds.descriptions[i - 1] for i in bands)
-    return Tile(path, AugImage(image, mask), georef, desc)
+            georef = Georef.of_dataset(ds, path=path)
+    if dtype == np.float64:
+        dtype = np.dtype(np.float32)
+    if dtype not in (np.uint8, np.uint16, np.int16, np.float32):
+        raise RasterError(f"{what}: {path} has data type {dtype}; augmentation supports "
+                          "uint8, uint16, int16 and float32 images; convert it first")
+    data = read_raster(path, what=what, out_dtype=dtype, require_crs=False)
+    return Tile(path, AugImage(data.array, data.valid), georef, data.band_names)
 
 
 def read_yolo(path: Path, shape: tuple[int, int]) -> Boxes | None:
@@ -251,7 +236,7 @@ def write_image(path: Path, img: AugImage, *, georef: Georef | None,
         return _write_png(path, img)
     desc = [d or f"band {i}" for i, d in enumerate(band_descriptions, start=1)] or None
     if georef is not None:
-        return write_geotiff(path, img.image, transform=georef.transform, crs=georef.crs,
+        return write_geotiff(path, img.image, transform=georef.transform, crs=georef.rasterio_crs(),
                              mask=img.mask, band_descriptions=desc, tags=dict(tags))
     arr = img.image
     count, rows, cols = arr.shape

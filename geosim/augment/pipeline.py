@@ -55,7 +55,7 @@ from geosim.augment.geometry import Boxes, BoxTrack, is_identity
 from geosim.augment.resample import INTERPOLATION, affine_resample, remap_resample
 from geosim.errors import ConfigError, InputFileError
 
-__all__ = ["AugImage", "AugmentResult", "Pipeline", "Step", "default_config_path",
+__all__ = ["AugImage", "AugmentResult", "Pipeline", "AugmentStep", "default_config_path",
            "flatten_records", "load_pipeline"]
 
 #: Longest box edge (pixels) between vertices inserted before a non-affine warp.
@@ -99,7 +99,7 @@ class AugImage:
 
 
 @dataclass(frozen=True)
-class Step:
+class AugmentStep:
     """One pipeline step: a function and the probability that it is applied."""
 
     function: AugmentFunction
@@ -173,7 +173,7 @@ class Pipeline:
         and are rescaled to the GSD of each image (see :meth:`length_scale`).
     """
 
-    steps: tuple[Step, ...]
+    steps: tuple[AugmentStep, ...]
     min_visible_fraction: float = 0.5
     interpolation: str = "cubic"
     reference_gsd_m: float | None = None
@@ -227,7 +227,7 @@ class Pipeline:
                 fn = FUNCTIONS[name].from_params(params)
             except ConfigError as exc:
                 raise ConfigError(f"{where}: {exc}") from None
-            steps.append(Step(fn, float(prob)))
+            steps.append(AugmentStep(fn, float(prob)))
         try:
             return cls(tuple(steps), **opts)
         except ConfigError as exc:

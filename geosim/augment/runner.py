@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import time
 import zlib
@@ -45,7 +44,9 @@ from geosim.augment.io import (
 from geosim.augment.pipeline import AugImage, AugmentResult, Pipeline, flatten_records
 from geosim.errors import OutputError, RasterError
 from geosim.io.atomic import write_json, write_text
+from geosim.io.paths import safe_name
 from geosim.io.raster import provenance_tags
+from geosim.rundir import RunDir
 
 __all__ = ["MANIFEST_COLUMNS", "output_rng", "run_augment"]
 
@@ -65,8 +66,6 @@ def output_rng(seed: int, pair_id: str, index: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(key, index)))
 
 
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", name)
 
 
 def _load(run_dir: Path, row: PairRow, resolution: str) -> tuple[Tile, Tile, list[bool]]:
@@ -147,7 +146,7 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
             gsd = tile_a.georef.gsd_m if tile_a.georef is not None else None
             scale = pipeline.length_scale(gsd)
             for k in range(n):
-                aug_id = f"{_safe(row.pair_id)}_k{k:03d}"
+                aug_id = f"{safe_name(row.pair_id)}_k{k:03d}"
                 res = pipeline.apply(tile_a.data, tile_b.data, output_rng(seed, row.pair_id, k),
                                      length_scale=scale)
                 mrow = _write_outputs(out, aug_id, row, k, res, (tile_a, tile_b), run_dir,
@@ -167,7 +166,7 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
     columns = ["aug_id", "pair_id", "index", "seed", "length_scale",
                *pipeline.record_columns()]
     params_path = write_csv(out / "parameters.csv", columns, params_rows)
-    classes_src = run_dir / "labels" / "classes.txt"
+    classes_src = RunDir.of(run_dir).classes_txt
     classes = classes_src.read_text() if classes_src.is_file() else "cattle\n"
     write_text(out / "classes.txt", classes)
     summary: dict[str, Any] = {

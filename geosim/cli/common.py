@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import click
 
 from geosim.config import ANCHORS, load_site
+from geosim.errors import ConfigError
 from geosim.pipeline import format_summary, run_pipeline
 
 SITE_ARG = click.argument("site_file", type=click.Path(path_type=Path))
@@ -22,7 +23,9 @@ ANCHOR_OPTION = click.option(
 
 
 def run_steps(site_file: Path, out: Path, steps: Sequence[str] | None, *,
-              anchor: str | None = None) -> dict[str, Any]:
+              anchor: str | None = None,
+              options: Mapping[str, Mapping[str, Any]] | None = None,
+              satellite_required: bool = False) -> dict[str, Any]:
     """Load and validate the site (before anything is written), run steps, print the summary.
 
     Parameters
@@ -35,11 +38,26 @@ def run_steps(site_file: Path, out: Path, steps: Sequence[str] | None, *,
         Step names, or None for the whole pipeline.
     anchor
         Overrides the site's ``anchor`` when given (validated like the site file's).
+    options
+        Keyword options per step name (``{"degrade": {"q": 4.34}}``).
+    satellite_required
+        Refuse (ConfigError) a site without a satellite scene instead of skipping the
+        steps that need one (for commands that run only such a step).
+
+    Returns
+    -------
+    dict
+        The run record (run.json). Progress and warnings go to stderr, the summary to
+        stdout.
     """
     site = load_site(site_file)
     if anchor is not None:
         site = dataclasses.replace(site, anchor=anchor)
-    record = run_pipeline(site, out, only=steps or None,
+    if satellite_required and site.satellite is None:
+        raise ConfigError(f"{site_file}: site {site.name!r} has no [satellite] scene; "
+                          f"'geosim {' '.join(steps or ())}' needs one (add a [satellite] "
+                          "table with the image path)")
+    record = run_pipeline(site, out, only=steps or None, options=options,
                           echo=lambda s: click.echo(s, err=True))
     click.echo(format_summary(record))
     return record

@@ -1,4 +1,4 @@
-"""``geosim degrade`` and ``geosim calibrate``: parse, load the site, call the step."""
+"""``geosim degrade`` and ``geosim calibrate``: parse and run the step through the runner."""
 
 from __future__ import annotations
 
@@ -6,16 +6,12 @@ from pathlib import Path
 
 import click
 
-from geosim.config import load_site
-
-_SITE = click.argument("site_file", type=click.Path(path_type=Path))
-_OUT = click.option("--out", "out", required=True, type=click.Path(path_type=Path),
-                    help="Run folder holding the earlier steps' outputs.")
+from geosim.cli.common import OUT_OPTION, SITE_ARG, run_steps
 
 
 @click.command()
-@_SITE
-@_OUT
+@SITE_ARG
+@OUT_OPTION
 @click.option("--q", "q", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Q = λf/(Dp) of the simulated optics (default: the mean calibrated Q "
                    "from DIR/calibration.json).")
@@ -32,18 +28,12 @@ def degrade(site_file: Path, out: Path, q: float | None, method: str) -> None:
 
     Example: geosim degrade site.toml --out run --q 4.34
     """
-    from geosim.degrade.steps import run_degrade
-
-    site = load_site(site_file)
-    summary = run_degrade(site, out, q, method=method)
-    click.echo(summary["text"])
-    if summary.get("warning"):
-        click.echo(f"warning: {summary['warning']}", err=True)
+    run_steps(site_file, out, ("degrade",), options={"degrade": {"q": q, "method": method}})
 
 
 @click.command()
-@_SITE
-@_OUT
+@SITE_ARG
+@OUT_OPTION
 def calibrate(site_file: Path, out: Path) -> None:
     """Calibrate Q against the satellite scene by Laplacian variance (needs 'geosim align').
 
@@ -53,13 +43,8 @@ def calibrate(site_file: Path, out: Path) -> None:
 
     Example: geosim calibrate site.toml --out run
     """
-    from geosim.degrade.steps import run_calibrate
-
-    site = load_site(site_file)
-    summary = run_calibrate(site, out)
+    record = run_steps(site_file, out, ("calibrate",), satellite_required=True)
+    summary = record["steps"]["calibrate"]["summary"]
     for fid, q in summary["q"].items():
         click.echo(f"  {fid:<12} Q = {q:6.3f}   satellite LV = {summary['lv_satellite'][fid]:.4g}")
-    click.echo(summary["text"])
     click.echo(f"wrote {out / 'calibration.json'} and {out / 'calibration.png'}")
-    if summary.get("warning"):
-        click.echo(f"warning: {summary['warning']}", err=True)

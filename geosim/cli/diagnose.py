@@ -32,20 +32,28 @@ def diagnose(site_file: Path | None, uav: tuple[Path, ...], satellite: Path | No
     Either SITE_FILE (a run folder --out made by `geosim run` must exist) or
     --uav ... --satellite ... (standalone).
     """
-    from geosim.diagnose.steps import diagnose_images, run_diagnose
-
     if site_file is not None:
         if uav or satellite:
             raise ConfigError("give either SITE_FILE or --uav/--satellite, not both")
-        from geosim.config import load_site
+        from geosim.cli.common import run_steps
 
-        summary = run_diagnose(load_site(site_file), out)
+        record = run_steps(site_file, out, ("diagnose",), satellite_required=True)
+        summary = record["steps"]["diagnose"]["summary"]
     else:
         if not uav or satellite is None:
             raise ConfigError("geosim diagnose needs SITE_FILE or at least one --uav and "
                               "--satellite; see geosim diagnose --help")
-        summary = diagnose_images(list(uav), satellite, out, uav_gsd_m=uav_gsd_m,
-                                  sat_gsd_m=sat_gsd_m, seed=seed)
+        from geosim.config import site_from_images
+        from geosim.pipeline import format_summary, run_pipeline
+
+        # tile_px is not used here; a multiple of φ keeps the site valid for any whole φ
+        site = site_from_images(list(uav), satellite, uav_gsd_m=uav_gsd_m, sat_gsd_m=sat_gsd_m,
+                                tile_px=max(1, round(sat_gsd_m / uav_gsd_m)) * 500)
+        record = run_pipeline(site, out, only=["diagnose_images"],
+                              options={"diagnose_images": {"seed": seed}},
+                              echo=lambda s: click.echo(s, err=True))
+        click.echo(format_summary(record))
+        summary = record["steps"]["diagnose_images"]["summary"]
     flights = summary.get("flights", {})
     if len(flights) > 1:
         click.echo(f"{len(flights)} flights diagnosed; combined (majority) verdict:")

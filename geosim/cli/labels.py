@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from geosim.config import load_site
+from geosim.cli.common import run_steps
 
 
 @click.command()
@@ -21,12 +21,8 @@ def labels(site_file: Path, out: Path, iou: float) -> None:
     Writes OUT/labels/: cattle.geojson (RFC 7946), cattle.gpkg (site CRS),
     classes.txt, yolo/<flight>/<tile>.txt and yolo_0.5m/<flight>/<tile>.txt.
     """
-    from geosim.labels.steps import run_labels
-
-    site = load_site(site_file)
-    summary = run_labels(site, out, iou_threshold=iou)
-    click.echo(summary["text"])
-    for fid, s in summary["flights"].items():
+    record = run_steps(site_file, out, ("labels",), options={"labels": {"iou_threshold": iou}})
+    for fid, s in record["steps"]["labels"]["summary"]["flights"].items():
         click.echo(f"  {fid}: {s['cattle']} cattle ({s['duplicates_merged']} duplicates merged), "
                    f"{s['tiles']} tiles ({s['empty_tiles']} empty), {s['boxes_uav']} boxes, "
                    f"{s['clipped']} clipped, {s['dropped_below_visible_fraction']} dropped")

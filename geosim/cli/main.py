@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import importlib
-import importlib.util
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -35,7 +34,8 @@ SUBCOMMANDS: list[tuple[str, str]] = [
 
 
 class GeosimGroup(click.Group):
-    """Turns :class:`GeosimError` into one line on stderr and exit code 2."""
+    """Turns :class:`GeosimError` into one line on stderr and exit code 2, and an
+    interruption (Ctrl-C, SIGTERM; recorded in run.json) into one line and exit 130."""
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
@@ -51,6 +51,12 @@ class GeosimGroup(click.Group):
                 raise
             click.echo(f"geosim: error: {failure}", err=True)
             sys.exit(2)
+        except KeyboardInterrupt as exc:
+            if ctx.obj and ctx.obj.get("debug"):
+                raise
+            click.echo(f"geosim: interrupted ({exc or 'Ctrl-C'}); run.json records it; "
+                       "run the command again to redo it", err=True)
+            sys.exit(130)
 
 
 @click.group(cls=GeosimGroup)
@@ -66,8 +72,6 @@ def cli(ctx: click.Context, debug: bool) -> None:
 
 def _register(group: click.Group, entries: list[tuple[str, str]]) -> None:
     for module_name, attr in entries:
-        if importlib.util.find_spec(module_name) is None:
-            continue  # subcommand module not written yet
         command: Callable[..., Any] = getattr(importlib.import_module(module_name), attr)
         group.add_command(command)  # type: ignore[arg-type]
 

@@ -8,6 +8,7 @@ import click
 
 from geosim.cli.common import ANCHOR_OPTION, OUT_OPTION, SITE_ARG, run_steps
 from geosim.pipeline import STEP_NAMES
+from geosim.rundir import RunDir
 from geosim.samples_location import bundled_site
 
 _ONLY = click.option("--only", "only", multiple=True, type=click.Choice(STEP_NAMES),
@@ -38,7 +39,7 @@ def demo(out: Path, only: tuple[str, ...], anchor: str | None) -> None:
     click.echo(f"sample site: {site_path}", err=True)
     run_steps(site_path, out, only, anchor=anchor)
     click.echo(f"outputs in {out}/ (run.json records inputs, parameters and timings)")
-    comparison = out / "diagnosis" / "truth_comparison.txt"
+    comparison = RunDir(out).diagnosis_dir / "truth_comparison.txt"
     if comparison.is_file():  # the sample site ships its truth: show what diagnose found
         click.echo("\ndiagnosis of the sample satellite scene, fitted vs truth.json:")
         click.echo(comparison.read_text().rstrip())

@@ -1,13 +1,13 @@
 """Pipeline steps ``calibrate`` and ``degrade``: the I/O around the pure kernels.
 
-``run_calibrate(site, out_dir)``
+``run_calibrate(site, out)``
     Reads ``grid/satellite.tif`` (the satellite scene on the shared 0.5 m grid)
     and ``aligned/<flight>.tif`` (each flight on the aligned 0.05 m grid, nested
     in the same origin family). For each flight, over its common extent with
     the satellite (both valid), it measures the satellite's Laplacian variance,
     the LV of the degraded flight as a function of Q, and solves for the Q
     where they are equal. Writes ``calibration.json`` and ``calibration.png``.
-``run_degrade(site, out_dir, q=None)``
+``run_degrade(site, out, q=None)``
     Degrades every ``tiles/<flight>/<tile>.tif`` to ``degraded/<flight>/<tile>.tif``
     at Q (default: the mean Q of ``calibration.json``), with the tile's
     transform scaled by φ (same origin), same CRS, the valid mask propagated
@@ -44,19 +44,19 @@ from geosim.degrade.plot import plot_calibration
 from geosim.engine import parallel_map
 from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
 from geosim.io.atomic import write_json
-from geosim.io.paths import relative_if_inside
 from geosim.io.raster import (
     image_band_indexes,
     open_raster,
     provenance_tags,
+    read_raster,
     read_valid_mask,
     write_geotiff,
 )
 from geosim.physics.psf import first_zero_px
 from geosim.prepare.grid import sat_grid_offset
+from geosim.result import StepResult
+from geosim.rundir import RunDir, RunPath
 
-CALIBRATION_JSON = "calibration.json"
-CALIBRATION_PNG = "calibration.png"
 #: Q values at which the LV curve is sampled for the figure and the JSON.
 N_CURVE_SAMPLES = 16
 #: Calibration blocks: core side and margin, in satellite pixels (margin error < 2e-4
@@ -195,20 +195,21 @@ def calibrate_flight(flight_id: str, flight_path: Path, sat: rasterio.DatasetRea
             "evaluations": sol.evaluations}
 
 
-def run_calibrate(site: SiteConfig, out_dir: str | Path) -> dict[str, Any]:
+def run_calibrate(site: SiteConfig, out: RunPath) -> StepResult:
     """Calibrate Q of every flight against the satellite scene; write JSON and figure.
 
     Parameters
     ----------
     site
         The validated site (its ``parameters`` give φ, ``q_min`` and ``q_max``).
-    out_dir
+    out
         Run folder holding ``grid/satellite.tif`` and ``aligned/<flight>.tif``.
 
     Returns
     -------
-    dict
-        Summary: ``mean_q``, per-flight ``q``, ``warning`` and the files written.
+    StepResult
+        Record: ``mean_q``, per-flight ``q`` and ``lv_satellite``, ``not_calibrated``;
+        warnings when a Q is outside the range of real cameras.
 
     Raises
     ------
@@ -217,18 +218,13 @@ def run_calibrate(site: SiteConfig, out_dir: str | Path) -> dict[str, Any]:
     CalibrationError
         No flight could be calibrated (``calibration.json`` is still written).
     """
-    out = Path(out_dir)
+    run = RunDir.of(out)
     p = site.parameters
     if site.satellite is None:
         raise ConfigError(f"site {site.name!r} has no [satellite] scene; calibration needs one "
                           "(add a [satellite] table with the image path)")
-    sat_path = out / "grid" / "satellite.tif"
-    if not sat_path.is_file():
-        raise InputFileError(f"{sat_path} not found; run 'geosim grid' (or 'geosim run') first")
-    paths = {f.id: out / "aligned" / f"{f.id}.tif" for f in site.flights}
-    for fid, path in paths.items():
-        if not path.is_file():
-            raise InputFileError(f"{path} not found; run 'geosim align' first (flight {fid})")
+    sat_path = run.require_satellite_grid()
+    paths = {f.id: run.require_aligned(f.id) for f in site.flights}
     start = time.perf_counter()
     with open_raster(sat_path, what="satellite scene on the shared grid") as sat:
         if not image_band_indexes(sat):
@@ -242,7 +238,7 @@ def run_calibrate(site: SiteConfig, out_dir: str | Path) -> dict[str, Any]:
     doc: dict[str, Any] = {
         "site": site.name,
         "geosim_version": __version__,
-        "satellite": relative_if_inside(sat_path, out),
+        "satellite": run.rel(sat_path),
         "satellite_source": str(site.satellite.image),
         "satellite_acquired": (site.satellite.acquired.isoformat()
                                if site.satellite.acquired else None),
@@ -259,34 +255,32 @@ def run_calibrate(site: SiteConfig, out_dir: str | Path) -> dict[str, Any]:
         "flight_warnings": warnings,
         "seconds": round(time.perf_counter() - start, 3),
     }
-    write_json(out / CALIBRATION_JSON, doc)
-    plot_calibration(doc, out / CALIBRATION_PNG)
+    write_json(run.calibration_json, doc)
+    plot_calibration(doc, run.calibration_png)
     if not ok:
         reasons = "; ".join(f"{f['flight']}: {f.get('error') or f.get('reason')}"
                             for f in flights)
         raise CalibrationError(f"no flight could be calibrated against the satellite scene "
-                               f"({reasons}); see {out / CALIBRATION_JSON}")
+                               f"({reasons}); see {run.calibration_json}")
     per = ", ".join(f"{f['flight']} {f['q']:.2f}" for f in ok)
     text = f"mean Q = {mean_q:.2f} over {len(ok)} flight(s) ({per})"
     skipped = [f["flight"] for f in flights if f["status"] != "ok"]
     if skipped:
         text += f"; not calibrated: {', '.join(skipped)}"
-    return {"mean_q": mean_q, "q": {f["flight"]: f["q"] for f in ok},
-            "lv_satellite": {f["flight"]: f["lv_satellite"] for f in ok},
-            "not_calibrated": skipped, "warning": warning,
-            "files": [CALIBRATION_JSON, CALIBRATION_PNG],
-            "text": text + (" — Q outside 0.5–2: run geosim diagnose" if warning else "")}
+    return StepResult(
+        summary=text + (" — Q outside 0.5–2: run geosim diagnose" if warning else ""),
+        warnings=[warning] if warning else [],
+        outputs=[run.rel(run.calibration_json), run.rel(run.calibration_png)],
+        record={"mean_q": mean_q, "q": {f["flight"]: f["q"] for f in ok},
+                "lv_satellite": {f["flight"]: f["lv_satellite"] for f in ok},
+                "not_calibrated": skipped})
 
 
 # --------------------------------------------------------------------------- degrade
 
-def read_calibrated_q(out_dir: str | Path) -> float:
-    """Mean Q from ``out_dir/calibration.json``."""
-    path = Path(out_dir) / CALIBRATION_JSON
-    if not path.is_file():
-        raise InputFileError(f"{path} not found; run 'geosim calibrate' first (it needs a "
-                             "[satellite] scene), or give Q explicitly: set q = 4.34 under "
-                             "[parameters] in the site file, or geosim degrade ... --q 4.34")
+def read_calibrated_q(out: RunPath) -> float:
+    """Mean Q from the run folder's ``calibration.json``."""
+    path = RunDir.of(out).require_calibration()
     try:
         doc = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
@@ -334,28 +328,24 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
 
     src, dst = Path(src), Path(dst)
     # decode the compressed tile blocks (image and mask) on every core of this worker
-    with rasterio.Env(GDAL_NUM_THREADS=str(warp_threads())), \
-            open_raster(src, what="UAV tile") as ds:
-        if uav_gsd_m is not None and not math.isclose(abs(ds.transform.a), uav_gsd_m,
-                                                       rel_tol=1e-6):
-            raise RasterError(f"{src}: pixel size {abs(ds.transform.a)} m is not "
-                              f"parameters.uav_gsd_m = {uav_gsd_m} m; the tiles come from "
-                              "another run: re-run 'geosim tile'")
-        if ds.height < phi or ds.width < phi:
-            raise RasterError(f"{src}: {ds.width} × {ds.height} px is smaller than one "
-                              f"satellite pixel ({phi} × {phi} px)")
-        bands = image_band_indexes(ds)
-        image = ds.read(bands)
-        valid = read_valid_mask(ds)
-        transform, crs, nodata = ds.transform, ds.crs, ds.nodata
-        descriptions = [ds.descriptions[b - 1] for b in bands]
-    degraded, valid_out = degrade_array(image, q=q, phi=phi, valid=valid, method=method,
-                                        obscuration=obscuration)
-    out = to_dtype(degraded, image.dtype)
-    write_geotiff(dst, out, transform=degraded_transform(transform, phi), crs=crs,
-                  nodata=nodata, mask=valid_out,
-                  band_descriptions=descriptions if all(descriptions) else None,
-                  tags=tags)
+    with rasterio.Env(GDAL_NUM_THREADS=str(warp_threads())):
+        tile = read_raster(src, what="UAV tile")
+    rows, cols = tile.shape
+    if uav_gsd_m is not None and not math.isclose(abs(tile.transform.a), uav_gsd_m,
+                                                   rel_tol=1e-6):
+        raise RasterError(f"{src}: pixel size {abs(tile.transform.a)} m is not "
+                          f"parameters.uav_gsd_m = {uav_gsd_m} m; the tiles come from "
+                          "another run: re-run 'geosim tile'")
+    if rows < phi or cols < phi:
+        raise RasterError(f"{src}: {cols} × {rows} px is smaller than one "
+                          f"satellite pixel ({phi} × {phi} px)")
+    degraded, valid_out = degrade_array(tile.array, q=q, phi=phi, valid=tile.valid,
+                                        method=method, obscuration=obscuration)
+    out = to_dtype(degraded, tile.array.dtype)
+    names = list(tile.band_names)
+    write_geotiff(dst, out, transform=degraded_transform(tile.transform, phi), crs=tile.crs,
+                  nodata=tile.nodata, mask=valid_out,
+                  band_descriptions=names if all(names) else None, tags=tags)
     return {"shape": list(out.shape[1:]), "valid_fraction": float(valid_out.mean())}
 
 
@@ -379,16 +369,18 @@ def degrade_tile_task(task: DegradeTileTask) -> dict[str, Any]:
                         obscuration=task.obscuration, uav_gsd_m=task.uav_gsd_m, tags=task.tags)
 
 
-def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *,
-                method: str = "fast", obscuration: float = 0.0) -> dict[str, Any]:
+def run_degrade(site: SiteConfig, out: RunPath, q: float | None = None, *,
+                method: str = "fast", obscuration: float = 0.0) -> StepResult:
     """Degrade every UAV tile to the satellite grid.
 
     Parameters
     ----------
     site
         The validated site (φ and GSDs from its parameters).
-    out_dir
+    out
         Run folder with ``tiles/<flight>/<tile>.tif``; writes ``degraded/<flight>/<tile>.tif``.
+        Degraded tiles of an earlier run whose UAV tile is gone are removed by the runner
+        (:func:`geosim.pipeline.run_pipeline`), from run.json's record of outputs.
     q
         Q to use; None = the site's ``parameters.q`` when set, else the mean calibrated
         Q from ``calibration.json``.
@@ -399,10 +391,10 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
 
     Returns
     -------
-    dict
-        Summary: ``q``, ``q_source``, ``method``, tiles per flight, timing.
+    StepResult
+        Record: ``q``, ``q_source``, ``method``, tiles per flight, timing.
     """
-    out = Path(out_dir)
+    run = RunDir.of(out)
     p = site.parameters
     if method not in METHODS:
         raise ConfigError(f"method {method!r} is not one of {', '.join(METHODS)}")
@@ -411,17 +403,14 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
     if q is None and p.q is not None:
         q, q_source = p.q, "site parameters.q"
     elif q is None:
-        q, q_source = read_calibrated_q(out), CALIBRATION_JSON
+        q, q_source = read_calibrated_q(run), run.rel(run.calibration_json)
     else:
         q_source = "user"
         if not (isinstance(q, (int, float)) and math.isfinite(q) and q > 0):
             raise ConfigError(f"Q = {q!r} must be a positive number (e.g. 4.34)")
         q = float(q)
-    tiles_dir = out / "tiles"
-    if not tiles_dir.is_dir():
-        raise InputFileError(f"{tiles_dir} not found; run 'geosim tile' (or 'geosim run') first")
-    jobs = [(f.id, path) for f in site.flights
-            for path in sorted((tiles_dir / f.id).glob("*.tif"))]
+    tiles_dir = run.require_tiles_dir()
+    jobs = [(f.id, path) for f in site.flights for path in run.tile_files(f.id)]
     if not jobs:
         raise InputFileError(f"no tiles in {tiles_dir}/<flight>/ for flights "
                              f"{', '.join(site.flight_ids)}; run 'geosim tile' first")
@@ -431,28 +420,26 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
                        "cv2 INTER_CUBIC; symmetric boundary; no-data filled by pull-push"}
     counts: dict[str, int] = {fid: 0 for fid in site.flight_ids}
     start = time.perf_counter()
-    tasks = [DegradeTileTask(str(src), str(out / "degraded" / fid / src.name), q, p.phi,
-                             method, obscuration, p.uav_gsd_m, {
-                                 **provenance_tags("degrade", params, [src], base_dir=out),
-                                 "GEOSIM_Q": f"{q:.6g}", "GEOSIM_METHOD": method,
-                                 "GEOSIM_UAV_GSD_M": f"{p.uav_gsd_m:g}",
-                                 "GEOSIM_SAT_GSD_M": f"{p.sat_gsd_m:g}",
-                                 "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem})
-             for fid, src in jobs]
+    tasks = []
+    outputs = []
+    for fid, src in jobs:
+        dst = run.degraded(fid, src.stem)
+        tags = {**provenance_tags("degrade", params, [src], base_dir=run.root),
+                "GEOSIM_Q": f"{q:.6g}", "GEOSIM_METHOD": method,
+                "GEOSIM_UAV_GSD_M": f"{p.uav_gsd_m:g}", "GEOSIM_SAT_GSD_M": f"{p.sat_gsd_m:g}",
+                "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem}
+        tasks.append(DegradeTileTask(str(src), str(dst), q, p.phi, method, obscuration,
+                                     p.uav_gsd_m, tags))
+        outputs.append(run.rel(dst))
     parallel_map(degrade_tile_task, tasks)
     for fid, _src in jobs:
         counts[fid] += 1
-    for fid in site.flight_ids:  # drop degraded tiles whose UAV tile no longer exists
-        d = out / "degraded" / fid
-        if d.is_dir():
-            keep = {src.name for f, src in jobs if f == fid}
-            for stale in d.glob("*.tif"):
-                if stale.name not in keep:
-                    stale.unlink()
     seconds = time.perf_counter() - start
     warning = plausibility_warning(q, what="Q")
-    return {"q": q, "q_source": q_source, "method": method, "tiles": len(jobs),
-            "tiles_per_flight": counts, "out": "degraded",
-            "seconds_per_tile": round(seconds / len(jobs), 3), "warning": warning,
-            "text": f"{len(jobs)} tile(s) degraded to {p.sat_gsd_m:g} m at Q = {q:.3g} "
-                    f"({q_source}, {method} method) in degraded/"}
+    return StepResult(
+        summary=(f"{len(jobs)} tile(s) degraded to {p.sat_gsd_m:g} m at Q = {q:.3g} "
+                 f"({q_source}, {method} method) in {run.rel(run.degraded_dir)}/"),
+        warnings=[warning] if warning else [], outputs=outputs,
+        record={"q": q, "q_source": q_source, "method": method, "tiles": len(jobs),
+                "tiles_per_flight": counts, "out": run.rel(run.degraded_dir),
+                "seconds_per_tile": round(seconds / len(jobs), 3)})

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from geosim.degrade.blur import laplacian_variance as lv
+
 __all__ = ["Region", "residual_energy_map", "local_blur_ratio", "local_gain_offset",
            "find_regions", "regions_mask", "laplacian_variance"]
 
@@ -29,16 +31,8 @@ _LAPLACIAN = np.array([[1 / 6, 2 / 3, 1 / 6], [2 / 3, -10 / 3, 2 / 3], [1 / 6, 2
 def laplacian_variance(grey: np.ndarray, valid: np.ndarray | None = None) -> float:
     """The paper's blur metric: variance of the 3×3 Laplacian response over valid pixels.
 
-    Uses :func:`geosim.degrade.blur.laplacian_variance` when available.
+    The project's one implementation, :func:`geosim.degrade.blur.laplacian_variance`.
     """
-    try:
-        from geosim.degrade.blur import laplacian_variance as lv
-    except ImportError:
-        lap = ndimage.convolve(np.asarray(grey, dtype=float), _LAPLACIAN, mode="reflect")
-        if valid is not None:
-            inner = ndimage.binary_erosion(valid, np.ones((3, 3)), border_value=0)
-            lap = lap[inner]
-        return float(np.var(lap))
     return float(lv(grey, valid))
 
 

@@ -1,32 +1,18 @@
 """The paper's degradation model as seen by the diagnosis.
 
 ``paper_model(uav, q=, phi=)`` is I_sat = (I_uav ⊛ PSF(Q)) ↓φ with bicubic
-downsampling. It delegates to :func:`geosim.degrade.core.degrade_array` (the
-project's implementation) when that module is importable, and otherwise uses an
-equivalent Fourier-domain implementation (analytic circular-aperture OTF,
-reflect padding, OpenCV bicubic resize), so the diagnosis kernels can be tested
-on their own.
+downsampling: the project's one implementation,
+:func:`geosim.degrade.core.degrade_array` (and its cached spectral form,
+:class:`geosim.degrade.core.SpectralDegrader`, for many Q on one image).
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from geosim.physics import otf
+from geosim.degrade.core import SpectralDegrader, degrade_array
 
 __all__ = ["paper_model", "QSimulator"]
-
-
-def _fallback(uav: np.ndarray, q: float, phi: int) -> np.ndarray:
-    img = np.asarray(uav, dtype=np.float32)
-    if img.ndim == 2:
-        img = img[np.newaxis]
-    blurred = otf.apply_transfer(img, lambda fy, fx: otf.optics_otf(fy, fx, q=q, phi=phi))
-    rows, cols = img.shape[-2:]
-    out_shape = (cols // phi, rows // phi)
-    return np.stack([cv2.resize(b[: out_shape[1] * phi, : out_shape[0] * phi], out_shape,
-                                interpolation=cv2.INTER_CUBIC) for b in blurred]).astype(float)
 
 
 def paper_model(uav: np.ndarray, *, q: float, phi: int, valid: np.ndarray | None = None
@@ -42,10 +28,6 @@ def paper_model(uav: np.ndarray, *, q: float, phi: int, valid: np.ndarray | None
     phi
         Ratio satellite GSD / UAV GSD (whole number).
     """
-    try:
-        from geosim.degrade.core import degrade_array
-    except ImportError:
-        return _fallback(uav, q, phi)
     out, _ = degrade_array(np.asarray(uav), q=q, phi=phi, valid=valid)
     return np.asarray(out, dtype=float)
 
@@ -63,18 +45,12 @@ class QSimulator:
         self.valid = valid
         self.q_min = float(q_min)
         self._cache: dict[float, np.ndarray] = {}
-        self._fast = None
-        try:
-            from geosim.degrade.core import SpectralDegrader
-        except ImportError:
-            pass
-        else:
-            self._fast = SpectralDegrader(self.uav, phi=self.phi, q_min=self.q_min, valid=valid)
+        self._fast = SpectralDegrader(self.uav, phi=self.phi, q_min=self.q_min, valid=valid)
 
     def __call__(self, q: float) -> np.ndarray:
         key = round(float(q), 4)
         if key not in self._cache:
-            if self._fast is not None and key >= self.q_min:
+            if key >= self.q_min:
                 out = np.asarray(self._fast.degrade(key), dtype=float)
                 self._cache[key] = out[np.newaxis] if out.ndim == 2 else out
             else:

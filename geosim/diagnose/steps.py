@@ -20,6 +20,7 @@ satellite pixels at the centre of the common valid area (the UAV part of it is
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -35,11 +36,15 @@ from geosim.diagnose.locate import laplacian_variance
 from geosim.diagnose.report import write_diagnosis
 from geosim.diagnose.simulate import QSimulator
 from geosim.errors import DiagnosisError, ExtentError
+from geosim.io.paths import safe_name, unique_name
 from geosim.io.raster import image_band_indexes, open_raster, read_valid_mask
 from geosim.physics.radiometry import luma
 from geosim.prepare.grid import sat_grid_offset
+from geosim.result import StepResult
+from geosim.rundir import RunDir, RunPath
 
-__all__ = ["run_diagnose", "diagnose_images", "calibrate_q_lv", "diagnose_grids"]
+__all__ = ["run_diagnose", "run_diagnose_images", "diagnose_images", "calibrate_q_lv",
+           "diagnose_grids"]
 
 MAX_SAT_PX = 384
 
@@ -152,12 +157,7 @@ def _summary(doc: dict[str, Any], out: Path) -> dict[str, Any]:
 
 def _flight_dir(flight: str, taken: set[str]) -> str:
     """A folder name for a flight id (safe characters only, unique)."""
-    name = "".join(c if (c.isalnum() or c in "-_.") else "_" for c in flight).strip(".") \
-        or "flight"
-    base, k = name, 2
-    while name in taken or name in ("diagnosis",):
-        name = f"{base}_{k}"
-        k += 1
+    name = unique_name(safe_name(flight, default="flight"), taken | {"diagnosis"})
     taken.add(name)
     return name
 
@@ -226,12 +226,9 @@ def _read_q_base(path: Path, flight: str) -> float | None:
     return None
 
 
-def _read_flight(out: Path, sat_path: Path, flight: str, phi: int) -> dict[str, Any]:
+def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> dict[str, Any]:
     """The satellite window over one aligned flight and the flight's UAV pixels under it."""
-    uav_path = out / "aligned" / f"{flight}.tif"
-    if not uav_path.is_file():
-        raise DiagnosisError(f"{uav_path}: the aligned flight {flight} is missing; run the "
-                             "align step first")
+    uav_path = run.require_aligned(flight)
     with open_raster(sat_path, what="satellite on grid") as ds, \
             open_raster(uav_path, what=f"aligned flight {flight}") as du:
         row_off, col_off = sat_grid_offset(du.transform, ds.transform, phi,
@@ -258,31 +255,29 @@ def _read_flight(out: Path, sat_path: Path, flight: str, phi: int) -> dict[str, 
         uav = du.read(image_band_indexes(du)[:3], window=uwin).astype(np.float32)
         uval = read_valid_mask(du, uwin)
     return {"uav": uav, "uav_valid": uval, "sat": sat, "sat_valid": sval, "sat_transform": st,
-            "crs": crs, "q_base": _read_q_base(out / "calibration.json", flight),
+            "crs": crs, "q_base": _read_q_base(run.calibration_json, flight),
             "sources": [str(sat_path), str(uav_path)]}
 
 
-def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
-    """Pipeline step ``diagnose``: reads the run folder, writes ``out_dir/diagnosis/``.
+def run_diagnose(site: Any, out: RunPath) -> StepResult:
+    """Pipeline step ``diagnose``: reads the run folder, writes ``diagnosis/`` in it.
 
     Every flight of the site is diagnosed against the satellite scene (flights without
-    enough overlap are skipped and listed); the summary is the combined verdict.
+    enough overlap are skipped and listed); the record is the combined verdict.
     """
-    out = Path(out_dir)
-    sat_path = out / "grid" / "satellite.tif"
-    if not sat_path.is_file():
-        raise DiagnosisError(f"{sat_path}: the satellite scene on the shared grid is missing; "
-                             "run the grid step first (geosim run) or give --satellite")
+    run = RunDir.of(out)
+    sat_path = run.require_satellite_grid()
+    started = time.time()
     reference = site.reference_flight if site.reference_flight else site.flights[0].id
     phi = site.parameters.phi
 
     def loader(flight: str) -> Callable[[], dict[str, Any]]:
-        return lambda: _read_flight(out, sat_path, flight, phi)
+        return lambda: _read_flight(run, sat_path, flight, phi)
 
     loaders = [(f.id, loader(f.id)) for f in site.flights]
-    doc = diagnose_flights(loaders, out / "diagnosis", reference=reference, phi=phi,
+    doc = diagnose_flights(loaders, run.diagnosis_dir, reference=reference, phi=phi,
                            q_min=site.parameters.q_min, q_max=site.parameters.q_max)
-    summary = _summary(doc, out / "diagnosis")
+    summary = _summary(doc, run.diagnosis_dir)
     # the bundled sample site ships its ground truth: put fitted and true side by side
     site_path = getattr(site, "path", None)
     truth_path = Path(site_path).parent / "truth.json" if site_path else None
@@ -292,7 +287,7 @@ def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
 
         rows = compare_with_truth(doc, json.loads(truth_path.read_text()))
         summary["truth_comparison"] = rows
-        write_text(out / "diagnosis" / "truth_comparison.txt", format_truth_comparison(rows)
+        write_text(run.diagnosis_dir / "truth_comparison.txt", format_truth_comparison(rows)
                    + "\n(fitted = the combined verdict over the diagnosed flights: medians of "
                      "the flights that claimed each effect; haze is fitted relative to the "
                      "flights' radiometry (each flight's exposure and white balance divide the "
@@ -300,7 +295,11 @@ def run_diagnose(site: Any, out_dir: str | Path) -> dict[str, Any]:
                      "the seam), truth.json gives it relative to the true ground; "
                      "misregistration is the reference flight's, compared with the "
                      "satellite-minus-reference-flight offset in truth.json)\n")
-    return summary
+    text = summary.pop("text")
+    # the diagnosis writes many files (some through matplotlib): record those written now
+    outputs = [run.rel(p) for p in sorted(run.diagnosis_dir.rglob("*"))
+               if p.is_file() and p.stat().st_mtime >= started - 1.0]
+    return StepResult(summary=text, outputs=outputs, record=summary)
 
 
 def _to_grid(path: Path, crs: CRS, transform: Affine, shape: tuple[int, int], what: str
@@ -365,16 +364,32 @@ def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
                 "sources": [str(sat_path), str(uav_path)]}
 
     ids: list[str] = []
+    taken: set[str] = set()
     loaders = []
     for p in uav_paths:
-        stem, k = Path(p).stem, 2
-        fid = stem
-        while fid in ids:
-            fid = f"{stem}_{k}"
-            k += 1
+        fid = unique_name(Path(p).stem, taken)
         ids.append(fid)
         loaders.append((fid, lambda p=Path(p): load(p)))
     out = Path(out_dir)
     doc = diagnose_flights(loaders, out, reference=ids[0], phi=phi, seed=seed, q_min=q_min,
                            q_max=q_max)
     return _summary(doc, out)
+
+
+def run_diagnose_images(site: Any, out: RunPath, *, seed: int = 0) -> StepResult:
+    """Pipeline step of ``geosim diagnose --uav ... --satellite ...`` (standalone).
+
+    The site's flights (any CRS, as given) are diagnosed against its satellite scene with
+    :func:`diagnose_images`, written into the run folder itself (``diagnosis.json``,
+    ``report.md``, ``<flight>/``), at the site's ``uav_gsd_m`` and ``sat_gsd_m``.
+    """
+    run = RunDir.of(out)
+    started = time.time()
+    p = site.parameters
+    summary = diagnose_images([f.image for f in site.flights], site.satellite.image, run.root,
+                              uav_gsd_m=p.uav_gsd_m, sat_gsd_m=p.sat_gsd_m, seed=seed,
+                              q_min=p.q_min, q_max=p.q_max)
+    text = summary.pop("text")
+    outputs = [run.rel(f) for f in sorted(run.root.rglob("*"))
+               if f.is_file() and f != run.run_json and f.stat().st_mtime >= started - 1.0]
+    return StepResult(summary=text, outputs=outputs, record=summary)

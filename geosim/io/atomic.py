@@ -13,10 +13,34 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterator
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
 from geosim.errors import GeosimError, OutputError
+
+#: While :func:`recording_outputs` is active: the list of final paths written by
+#: :func:`atomic_path`, the journal file they are also appended to, and its tag.
+_JOURNAL: ContextVar[tuple[list[Path], Path | None, str] | None] = ContextVar(
+    "geosim_written", default=None)
+
+
+@contextlib.contextmanager
+def recording_outputs(journal: Path | None = None, *, tag: str = "") -> Iterator[list[Path]]:
+    """Collect the final path of every file written atomically inside the block.
+
+    The pipeline runner uses it so that a step interrupted half-way still records the
+    outputs it completed (run.json), and a rerun can remove them if they are stale.
+    With ``journal``, each path is also appended to that file at once (a line
+    ``<tag>\t<path>``), so that even a run killed with SIGKILL leaves a list of what it
+    wrote. Writes made in other processes (Dask workers) are not seen.
+    """
+    written: list[Path] = []
+    token = _JOURNAL.set((written, journal, tag))
+    try:
+        yield written
+    finally:
+        _JOURNAL.reset(token)
 
 
 @contextlib.contextmanager
@@ -50,6 +74,13 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, final)
+        active = _JOURNAL.get()
+        if active is not None:
+            written, journal, tag = active
+            written.append(final)
+            if journal is not None:
+                with open(journal, "a", encoding="utf-8") as fh:
+                    fh.write(f"{tag}\t{final}\n")
     except Exception as exc:
         failure = write_failure(exc, final)
         if failure is None:
@@ -64,7 +95,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 def write_json(path: str | os.PathLike[str], obj: Any) -> Path:
     """Write ``obj`` as indented JSON, atomically. Returns the final path."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+        tmp.write_text(json.dumps(obj, indent=2, default=json_default) + "\n")
     return Path(path)
 
 
@@ -75,15 +106,28 @@ def write_text(path: str | os.PathLike[str], text: str) -> Path:
     return Path(path)
 
 
-def _json_default(obj: Any) -> Any:
+def json_default(obj: Any) -> Any:
+    """The one JSON converter of geosim (``json.dumps(..., default=json_default)``).
+
+    numpy scalars and arrays, paths, dates and times, and dataclasses become plain JSON.
+    """
+    import dataclasses
+    import datetime as dt
+
     import numpy as np
 
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
         return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, (dt.datetime, dt.date, dt.time)):
+        return obj.isoformat()
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.asdict(obj)
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
@@ -119,3 +163,8 @@ def write_failure(exc: BaseException, path: str | os.PathLike[str]) -> OutputErr
         free = ""
     return OutputError(f"{final}: cannot be written ({reason}{free}); free disk space or "
                        "choose a writable --out, then rerun (nothing was half-written)")
+
+
+def to_jsonable(obj: Any) -> Any:
+    """``obj`` as plain JSON types (what reading back its JSON text would give)."""
+    return json.loads(json.dumps(obj, default=json_default))

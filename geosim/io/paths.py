@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 
@@ -20,3 +21,20 @@ def relative_if_inside(path: str | os.PathLike[str],
         except ValueError:
             pass  # outside base_dir
     return str(p)
+
+
+def safe_name(text: str, *, default: str = "item") -> str:
+    """``text`` as a file or folder name: runs of characters other than ``A-Z a-z 0-9 . _ -``
+    become ``_``, leading and trailing dots go (no hidden files, no ``..``); ``default``
+    when nothing is left. The one id sanitiser of geosim (flight ids, pair ids, folders).
+    """
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip(".") or default
+
+
+def unique_name(base: str, taken: set[str]) -> str:
+    """``base``, or ``base_2``, ``base_3``, ... : the first not in ``taken`` (which it joins)."""
+    name, k = base, 2
+    while name in taken:
+        name, k = f"{base}_{k}", k + 1
+    taken.add(name)
+    return name

@@ -1,4 +1,4 @@
-"""Reading and writing GeoTIFFs with the conventions of DESIGN.md.
+"""Reading and writing GeoTIFFs with geosim's conventions (docs/outputs.md).
 
 Outputs are tiled, compressed GeoTIFFs with CRS, transform, nodata and/or an
 internal mask, band descriptions and provenance tags, written atomically.
@@ -12,6 +12,7 @@ import json
 import os
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -92,6 +93,75 @@ def read_valid_mask(ds: rasterio.DatasetReader, window: Window | None = None) ->
     if alpha is not None:
         return ds.read(alpha, window=window) > 0
     return ds.dataset_mask(window=window) > 0
+
+
+@dataclass(frozen=True)
+class RasterData:
+    """Pixels read from a raster, with everything needed to place and write them again.
+
+    The read edge of geosim (modelled on rio-tiler's ``ImageData``): kernels take the
+    plain arrays (``array``, ``valid``), I/O code keeps the rest with them.
+
+    Attributes
+    ----------
+    array
+        Image bands, bands first ``(bands, rows, cols)``; alpha is not an image band.
+    valid
+        ``(rows, cols)`` bool, True where the pixel holds data (alpha, nodata or mask).
+    transform
+        Pixel-corner -> map affine of ``array`` (of the window when one was read).
+    crs
+        The raster's CRS (None when it has none).
+    band_names
+        Band descriptions, one per image band (None where unset).
+    nodata
+        The nodata value of the file, if any.
+    path
+        The file read.
+    """
+
+    array: np.ndarray
+    valid: np.ndarray
+    transform: Affine
+    crs: CRS | None
+    band_names: tuple[str | None, ...]
+    nodata: float | None = None
+    path: Path | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(rows, cols)``."""
+        return self.valid.shape  # type: ignore[return-value]
+
+
+def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
+                window: Window | None = None, bands: Sequence[int] | None = None,
+                out_dtype: Any = None, require_crs: bool = True) -> RasterData:
+    """Read image bands and the valid mask of a raster (or of a window of it).
+
+    Parameters
+    ----------
+    path
+        The raster.
+    what
+        Words naming it in error messages (``"UAV tile"``).
+    window
+        Only this window (default: the whole raster).
+    bands
+        1-based band indexes (default: every image band, alpha excluded).
+    out_dtype
+        Data type to read into (default: the file's).
+    require_crs
+        Refuse a raster without a CRS (:func:`open_raster`).
+    """
+    with open_raster(path, what=what, require_crs=require_crs) as ds:
+        idx = list(bands) if bands is not None else image_band_indexes(ds)
+        array = ds.read(idx, window=window, out_dtype=out_dtype)
+        return RasterData(
+            array=array, valid=read_valid_mask(ds, window),
+            transform=ds.window_transform(window) if window is not None else ds.transform,
+            crs=ds.crs, band_names=tuple(ds.descriptions[i - 1] for i in idx),
+            nodata=ds.nodata, path=Path(path))
 
 
 def geotiff_profile(*, width: int, height: int, count: int, dtype: str | np.dtype,

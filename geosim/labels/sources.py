@@ -29,22 +29,20 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import geopandas as gpd
 import numpy as np
 import pyogrio
 import shapely
-from affine import Affine
 from pyproj import CRS
 
 from geosim.config import FlightConfig
 from geosim.errors import CRSError, InputFileError, LabelError
+from geosim.io.georef import Georef
 from geosim.io.paths import relative_if_inside
 from geosim.io.raster import open_raster
 from geosim.labels.georef import (
-    apply_affine,
     boxes_to_polygons,
     linear_unit_m,
     polygon_sides,
@@ -61,41 +59,10 @@ PATCH_IMAGE_SUFFIXES = (".tif", ".tiff", ".TIF", ".TIFF")
 CLASS_COLUMNS = ("class_name", "class", "label")
 
 
-@dataclass(frozen=True)
-class ImageGeoref:
-    """The georeference of an image that YOLO boxes are normalised to.
-
-    Attributes
-    ----------
-    path
-        The image file.
-    transform
-        Pixel-corner -> map affine (CRS units per pixel).
-    width_px, height_px
-        Image size, pixels.
-    crs
-        The image's CRS.
-    """
-
-    path: Path
-    transform: Affine
-    width_px: int
-    height_px: int
-    crs: CRS
-
-    @property
-    def outline(self) -> shapely.Polygon:
-        """The image's outline in its own CRS (a parallelogram for rotated transforms)."""
-        corners = np.array([[0, 0], [self.width_px, 0], [self.width_px, self.height_px],
-                            [0, self.height_px]], dtype=float)
-        return shapely.Polygon(apply_affine(self.transform, corners))
-
-
-def read_image_georef(path: str | os.PathLike[str], *, what: str) -> ImageGeoref:
+def read_image_georef(path: str | os.PathLike[str], *, what: str) -> Georef:
     """Read only the header of a raster: transform, size and CRS."""
     with open_raster(path, what=what) as ds:
-        return ImageGeoref(Path(path), ds.transform, ds.width, ds.height,
-                           CRS.from_user_input(ds.crs.to_wkt()))
+        return Georef.of_dataset(ds, path=path)
 
 
 def _frame(flight: FlightConfig, geoms: np.ndarray, *, class_names: Sequence[str],
@@ -133,7 +100,7 @@ def _corner_sides(geoms: np.ndarray) -> np.ndarray:
                             np.hypot(*(xy[:, 2] - xy[:, 1]).T)])
 
 
-def yolo_file_to_frame(label_file: Path, image: ImageGeoref, class_list: Sequence[str],
+def yolo_file_to_frame(label_file: Path, image: Georef, class_list: Sequence[str],
                        flight: FlightConfig, site_crs: CRS, *,
                        base_dir: Path | None = None,
                        known_classes: Sequence[str] = CLASS_NAMES) -> gpd.GeoDataFrame:

@@ -1,8 +1,8 @@
-"""The labels pipeline step: ``run_labels(site, out_dir) -> dict``.
+"""The labels pipeline step: ``run_labels(site, out) -> StepResult``.
 
 Reads every labelled flight's labels (in the flight's stated frame), moves them
 into the aligned frame with the alignment step's correction, merges duplicates,
-and writes ``out_dir/labels/``::
+and writes ``labels/`` in the run folder::
 
     cattle.geojson            RFC 7946 (lon/lat), one box polygon per cow
     cattle.gpkg               site CRS; layers ``cattle`` (boxes) and ``cattle_centres`` (points)
@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
-import re
 import shutil
 import tempfile
 from collections.abc import Callable, Mapping
@@ -49,63 +47,50 @@ from tqdm import tqdm
 
 from geosim.config import SiteConfig
 from geosim.errors import AlignmentError, InputFileError
+from geosim.io.georef import Georef
 from geosim.io.publish import publish_folder
 from geosim.io.vector import write_geojson, write_gpkg
 from geosim.labels.dedupe import DEFAULT_IOU, dedupe_labels
 from geosim.labels.georef import affine_linear_scale, transform_geometries
-from geosim.labels.sources import ImageGeoref, read_site_labels
+from geosim.labels.sources import read_site_labels
 from geosim.labels.tiles import sat_tile_geometry, tile_boxes
 from geosim.labels.yolo import CLASS_NAMES, format_yolo
-
-TILE_ID = re.compile(r"^r\d{3,}_c\d{3,}$")
-
-
-@dataclass(frozen=True)
-class TileGeoref(ImageGeoref):
-    """A UAV tile's georeference (read from its GeoTIFF header) and its id."""
-
-    tile_id: str = ""
-
+from geosim.result import StepResult
+from geosim.rundir import TILE_ID, YOLO_SUBDIRS, RunDir, RunPath
 
 # ----------------------------------------------------------------------- inputs
 
 
-def read_grid(out_dir: Path) -> Any | None:
+def read_grid(run: RunDir) -> Any | None:
     """The shared grid (``grid/grid.json``) as a ``SiteGrid``, or None if absent."""
-    if not (out_dir / "grid" / "grid.json").is_file():
+    if not run.grid_json.is_file():
         return None
     from geosim.prepare.steps import read_grid as read_site_grid
 
-    return read_site_grid(out_dir)
+    return read_site_grid(run)
 
 
-def find_tiles(out_dir: Path, flight_ids: list[str]) -> dict[str, list[TileGeoref]]:
+def find_tiles(run: RunDir, flight_ids: list[str]) -> dict[str, list[Georef]]:
     """UAV tiles of each flight, from ``tiles/<flight>/<tile_id>.tif`` headers.
 
     Raises
     ------
     InputFileError
-        If ``out_dir/tiles`` does not exist (the tile step has not run).
+        If ``tiles/`` does not exist (the tile step has not run).
     """
-    tiles_dir = out_dir / "tiles"
-    if not tiles_dir.is_dir():
-        raise InputFileError(f"{tiles_dir} not found: the labels step writes YOLO files for "
-                             "the tiles; run 'geosim tile' (or 'geosim run') first")
-    found: dict[str, list[TileGeoref]] = {}
+    run.require(run.tiles_dir, "tile", is_dir=True,
+                what="(the labels step writes YOLO files for the tiles)")
+    found: dict[str, list[Georef]] = {}
     for fid in flight_ids:
         tiles = []
-        for path in sorted((tiles_dir / fid).glob("*.tif")):
-            if not TILE_ID.match(path.stem):
-                continue
+        for path in run.tile_files(fid):
             with rasterio.open(path) as ds:
-                tiles.append(TileGeoref(path, ds.transform, ds.width, ds.height,
-                                        CRS.from_user_input(ds.crs.to_wkt()),
-                                        tile_id=path.stem))
+                tiles.append(Georef.of_dataset(ds, path=path, name=path.stem))
         found[fid] = tiles
     return found
 
 
-def load_corrections(out_dir: Path, flight_ids: list[str], grid: Any,
+def load_corrections(run: RunDir, flight_ids: list[str], grid: Any,
                      ) -> dict[str, Affine]:
     """Per-flight affine from stated to aligned map coordinates (``alignment.json``).
 
@@ -116,10 +101,11 @@ def load_corrections(out_dir: Path, flight_ids: list[str], grid: Any,
     AlignmentError
         If ``alignment.json`` is missing or has no entry for a labelled flight.
     """
-    path = out_dir / "alignment.json"
+    path = run.alignment_json
     if not path.is_file():
-        raise AlignmentError(f"{path} not found: labels are moved into the aligned frame with "
-                             "the alignment correction; run 'geosim align' first")
+        raise AlignmentError(f"{run.rel(path)} not found in {run.root}: labels are moved into "
+                             "the aligned frame with the alignment correction; run "
+                             "'geosim align' first")
     from geosim.prepare.alignment import correction_affine
 
     doc = json.loads(path.read_text())
@@ -214,7 +200,7 @@ class TileLabels:
     stats: dict[str, int]
 
 
-def build_tile_labels(cattle: gpd.GeoDataFrame, tiles: list[TileGeoref], *, phi: int,
+def build_tile_labels(cattle: gpd.GeoDataFrame, tiles: list[Georef], *, phi: int,
                       min_visible_fraction: float,
                       progress: Callable[[], None] | None = None) -> TileLabels:
     """YOLO texts for one flight's UAV tiles and their 0.5 m counterparts.
@@ -247,10 +233,10 @@ def build_tile_labels(cattle: gpd.GeoDataFrame, tiles: list[TileGeoref], *, phi:
                                                         tile.height_px, phi)
         hit_sat = tile_boxes(geoms[cand], sat_transform, sat_w, sat_h,
                              min_visible_fraction=min_visible_fraction)
-        uav[tile.tile_id] = format_yolo(class_ids[cand[hit.index]], hit.boxes)
-        sat[tile.tile_id] = format_yolo(class_ids[cand[hit_sat.index]], hit_sat.boxes)
+        uav[tile.name] = format_yolo(class_ids[cand[hit.index]], hit.boxes)
+        sat[tile.name] = format_yolo(class_ids[cand[hit_sat.index]], hit_sat.boxes)
         for k in cand[hit.index]:
-            per_feature.setdefault(int(k), []).append(tile.tile_id)
+            per_feature.setdefault(int(k), []).append(tile.name)
         stats["tiles"] += 1
         stats["empty_tiles"] += int(len(hit) == 0)
         stats["boxes_uav"] += len(hit)
@@ -273,7 +259,7 @@ def _legacy_own(rel: str) -> bool:
     parts = rel.split("/")
     if len(parts) == 1:
         return rel in _OWN_TOP
-    return (len(parts) == 3 and parts[0] in ("yolo", "yolo_0.5m") and rel.endswith(".txt")
+    return (len(parts) == 3 and parts[0] in YOLO_SUBDIRS.values() and rel.endswith(".txt")
             and TILE_ID.match(parts[2][:-4]) is not None)
 
 
@@ -295,16 +281,16 @@ def _centres_layer(cattle: gpd.GeoDataFrame) -> gpd.GeoDataFrame:
     return gpd.GeoDataFrame(cattle.drop(columns="geometry"), geometry=points, crs=cattle.crs)
 
 
-def run_labels(site: SiteConfig, out_dir: str | os.PathLike[str], *,
+def run_labels(site: SiteConfig, out: RunPath, *,
                corrections: Mapping[str, Affine] | None = None,
-               iou_threshold: float = DEFAULT_IOU) -> dict[str, Any]:
+               iou_threshold: float = DEFAULT_IOU) -> StepResult:
     """Fill ``out_dir/labels/`` from the site's labels (see the module docstring).
 
     Parameters
     ----------
     site
         The site; flights with ``labels`` are processed.
-    out_dir
+    out
         The run folder; needs ``grid/grid.json``, ``tiles/`` and ``alignment.json``.
     corrections
         Stated -> aligned affine per flight (site CRS, metres); default: from
@@ -314,31 +300,35 @@ def run_labels(site: SiteConfig, out_dir: str | os.PathLike[str], *,
 
     Returns
     -------
-    dict
-        JSON-able summary: outputs written, per-flight counts, and ``text``.
+    StepResult
+        Outputs written, per-flight counts (record ``flights``), ``cattle``.
     """
-    out = Path(out_dir)
+    run = RunDir.of(out)
     params = site.parameters
     labelled = [f.id for f in site.flights if f.labels is not None]
     if not labelled:
-        return {"cattle": 0, "flights": {}, "outputs": {},
-                "text": "no flight has labels in the site file; nothing written"}
-    grid = read_grid(out)
-    tiles = find_tiles(out, labelled)
-    crs = _site_crs(grid, tiles, out)
+        return StepResult(summary="no flight has labels in the site file; nothing written",
+                          record={"cattle": 0, "flights": {}})
+    grid = read_grid(run)
+    tiles = find_tiles(run, labelled)
+    crs = _site_crs(grid, tiles, run)
     base_dir = site.path.parent if site.path is not None else None
 
     # Read and validate everything before writing anything.
     stated = read_site_labels([site.flight(f) for f in labelled], crs, base_dir=base_dir)
     if corrections is None:
-        corrections = load_corrections(out, labelled, grid)
+        corrections = load_corrections(run, labelled, grid)
     aligned = apply_corrections(stated, corrections)
     aligned = apply_local_fields(aligned, out)  # align_model = "local" only
     cattle = dedupe_labels(aligned, iou_threshold=iou_threshold)
     cattle = add_feature_attributes(cattle, sat_gsd_m=params.sat_gsd_m)
 
     per_flight: dict[str, dict[str, Any]] = {}
-    texts: dict[Path, str] = {Path("classes.txt"): "".join(f"{c}\n" for c in CLASS_NAMES)}
+    # paths relative to labels/ (built in a staging folder, then swapped in)
+    final = run.labels_dir
+    texts: dict[Path, str] = {run.classes_txt.relative_to(final):
+                              "".join(f"{c}\n" for c in CLASS_NAMES)}
+    uav_dir, sat_dir = (run.yolo_dir(r).relative_to(final) for r in ("uav", "0.5m"))
     tile_ids = [""] * len(cattle)
     n_tiles = sum(len(tiles[f]) for f in labelled)
     with tqdm(total=n_tiles, desc="labels per tile", unit="tile", disable=None) as bar:
@@ -348,9 +338,9 @@ def run_labels(site: SiteConfig, out_dir: str | os.PathLike[str], *,
                                       min_visible_fraction=params.min_visible_fraction,
                                       progress=bar.update if n_tiles else None)
             for tid, text in built.uav.items():
-                texts[Path("yolo") / fid / f"{tid}.txt"] = text
+                texts[uav_dir / fid / f"{tid}.txt"] = text
             for tid, text in built.sat.items():
-                texts[Path("yolo_0.5m") / fid / f"{tid}.txt"] = text
+                texts[sat_dir / fid / f"{tid}.txt"] = text
             for k, ids in built.tile_ids_per_feature.items():
                 tile_ids[pos[k]] = ";".join(ids)
             n_read = int((stated["flight"] == fid).sum())
@@ -363,7 +353,6 @@ def run_labels(site: SiteConfig, out_dir: str | os.PathLike[str], *,
             }
     cattle["tile_ids"] = tile_ids
 
-    final = out / "labels"
     with _staging(final) as stage:
         for rel, text in texts.items():
             (stage / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -374,29 +363,21 @@ def run_labels(site: SiteConfig, out_dir: str | os.PathLike[str], *,
                                        driver="GPKG", engine="pyogrio")
 
     total = len(cattle)
-    n_yolo = sum(1 for rel in texts if rel.parts[0] == "yolo")
-    return {
-        "outputs": {
-            "geojson": str(final / "cattle.geojson"),
-            "gpkg": str(final / "cattle.gpkg"),
-            "classes": str(final / "classes.txt"),
-            "yolo_dir": str(final / "yolo"),
-            "yolo_0.5m_dir": str(final / "yolo_0.5m"),
-        },
-        "crs": crs.to_string(),
-        "cattle": total,
-        "yolo_files_per_resolution": n_yolo,
-        "flights": per_flight,
-        "text": (f"{total} cattle in {len(labelled)} labelled flight(s), "
+    n_yolo = sum(1 for rel in texts if rel.parts[0] == uav_dir.name)
+    written = [final / rel for rel in texts] + [final / "cattle.geojson", final / "cattle.gpkg"]
+    return StepResult(
+        summary=(f"{total} cattle in {len(labelled)} labelled flight(s), "
                  f"{n_yolo} tile label files per resolution -> {final}"),
-    }
+        outputs=sorted(run.rel(p) for p in written),
+        record={"crs": crs.to_string(), "cattle": total, "yolo_files_per_resolution": n_yolo,
+                "flights": per_flight})
 
 
-def _site_crs(grid: Any | None, tiles: Mapping[str, list[TileGeoref]], out: Path) -> CRS:
+def _site_crs(grid: Any | None, tiles: Mapping[str, list[Georef]], run: RunDir) -> CRS:
     if grid is not None:
         return CRS.from_user_input(grid.crs.to_wkt())
     for tl in tiles.values():
         if tl:
             return tl[0].crs
-    raise InputFileError(f"{out}: neither grid/grid.json nor any tile says which CRS the site "
-                     "uses; run 'geosim grid' and 'geosim tile' first")
+    raise InputFileError(f"{run.root}: neither {run.rel(run.grid_json)} nor any tile says "
+                         "which CRS the site uses; run 'geosim grid' and 'geosim tile' first")

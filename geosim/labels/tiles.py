@@ -9,7 +9,7 @@ below ``min_visible_fraction`` are dropped: a cow cut mostly off a tile is not
 a useful positive there.
 
 The 0.5 m tile of a UAV tile has the same origin and ``phi`` times the pixel
-size (DESIGN.md, "the shared grid"), so :func:`sat_tile_geometry` gives its
+size (docs/alignment.md, "the shared grid"), so :func:`sat_tile_geometry` gives its
 georeference without the degraded file existing.
 """
 

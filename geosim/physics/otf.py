@@ -133,17 +133,6 @@ def off_nadir_otf(fy: np.ndarray, fx: np.ndarray, *, sigma_px: float,
     return np.exp(-2.0 * np.pi**2 * sigma_px**2 * f_par**2)
 
 
-def off_nadir_sigma_px(off_nadir_deg: float, *, native_pitch_px: float = 1.0) -> float:
-    """Extra along-look blur σ from viewing ``off_nadir_deg`` off nadir.
-
-    The ground footprint of a detector stretches by 1/cos θ along the look
-    azimuth; the extra width (1/cos θ − 1)·p of the box, taken as a Gaussian of
-    equal variance, has σ² = ((1/cos θ)² − 1)·p²/12.
-    """
-    stretch = 1.0 / np.cos(np.deg2rad(off_nadir_deg))
-    return float(native_pitch_px * np.sqrt(max(stretch**2 - 1.0, 0.0) / 12.0))
-
-
 def apply_transfer(image: np.ndarray, transfer: TransferFunction, *,
                    pad_px: int | None = None, workers: int = -1) -> np.ndarray:
     """Filter a 2-D image (or stack with bands first) by a real transfer function.

@@ -1,6 +1,6 @@
 """The patch-pair manifest ``pairs.csv``: every unordered pair of flights for every tile.
 
-Columns (see the team contract)::
+Columns (docs/outputs.md)::
 
     pair_id,tile_id,flight_a,flight_b,acquired_a,acquired_b,path_a,path_b,
     minx,miny,maxx,maxy,crs

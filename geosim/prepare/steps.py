@@ -1,30 +1,28 @@
 """Pipeline steps of the map-coordinate preparation: grid → footprints → align → tiles → pairs.
 
-Each ``run_<step>(site, out_dir) -> dict`` reads earlier outputs from ``out_dir``
-(layout in the team contract), writes its own atomically and returns a small
-JSON-able summary (``text`` is the one-line human version).
+Each ``run_<step>(site, out) -> StepResult`` reads earlier outputs from the run folder
+(:class:`geosim.rundir.RunDir`, layout in docs/outputs.md), writes its own atomically
+and returns a :class:`geosim.result.StepResult`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import math
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import geopandas as gpd
 import numpy as np
-import rasterio
 from affine import Affine
 from rasterio.windows import Window
 
 from geosim.config import SiteConfig
 from geosim.engine import parallel_map
-from geosim.errors import AlignmentError, ExtentError, InputFileError
+from geosim.errors import AlignmentError, ExtentError
 from geosim.io.atomic import write_json, write_text
 from geosim.io.raster import open_raster, provenance_tags
 from geosim.io.vector import write_geojson, write_gpkg
@@ -49,9 +47,8 @@ from geosim.prepare.tiles import (
     iter_tiles,
     select_tiles,
 )
-
-#: GDAL block cache for every step, MB (GDAL's default is 5 % of RAM): bounds memory.
-GDAL_CACHE_MB = 256
+from geosim.result import StepResult
+from geosim.rundir import RunDir, RunPath
 
 #: A common extent smaller than this many UAV pixels (100 × 100) is "tiny": an error.
 MIN_COMMON_UAV_PX = 100 * 100
@@ -60,39 +57,26 @@ LOCAL_WINDOW_PX = 256
 BLOCK_PX = 2048
 
 
-def _bounded_gdal_cache(step: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
-    """Run a step with GDAL's block cache limited to :data:`GDAL_CACHE_MB`."""
-    @functools.wraps(step)
-    def wrapper(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
-        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
-            return step(site, out_dir)
-    return wrapper
-
-
 def _crs_name(crs: Any) -> str:
     epsg = crs.to_epsg()
     return f"EPSG:{epsg}" if epsg else crs.to_wkt()
 
 
-def read_grid(out_dir: Path) -> SiteGrid:
-    """``out_dir/grid/grid.json`` as a :class:`SiteGrid` (InputFileError if absent)."""
-    path = Path(out_dir) / "grid" / "grid.json"
-    if not path.is_file():
-        raise InputFileError(f"{path} not found; run 'geosim grid' (or 'geosim run') first")
-    return SiteGrid.from_dict(json.loads(path.read_text()))
+def read_grid(out: RunPath) -> SiteGrid:
+    """``grid/grid.json`` of the run folder as a :class:`SiteGrid` (InputFileError if absent)."""
+    return SiteGrid.from_dict(json.loads(RunDir.of(out).require_grid().read_text()))
 
 
 # --------------------------------------------------------------------------- grid
 
 
-@_bounded_gdal_cache
-def run_grid(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+def run_grid(site: SiteConfig, out: RunPath) -> StepResult:
     """Choose the site CRS, build the nested grids, reproject flights and satellite onto them.
 
     Writes ``grid/grid.json``, ``grid/<flight>.tif`` (UAV grid, bicubic, internal mask)
     and ``grid/satellite.tif`` (satellite grid, cut to the grid's extent).
     """
-    out = Path(out_dir)
+    run = RunDir.of(out)
     p = site.parameters
     lonlat, what = [], {}
     for f in site.flights:
@@ -105,14 +89,13 @@ def run_grid(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
             extents.append(bounds_in_crs(ds, crs))
             what[f.id] = ds.crs.to_string()
     grid = snap_grid(union_bounds(extents), crs, uav_gsd_m=p.uav_gsd_m, sat_gsd_m=p.sat_gsd_m)
-    gdir = out / "grid"
-    gdir.mkdir(parents=True, exist_ok=True)
+    run.grid_dir.mkdir(parents=True, exist_ok=True)
     written: dict[str, Any] = {}
     params = {"uav_gsd_m": p.uav_gsd_m, "sat_gsd_m": p.sat_gsd_m, "crs": _crs_name(crs),
               "resampling": "bicubic"}
     if p.keep_intermediates:  # flights on the site grid: inspection copies only
         tasks = [WarpRasterTask(ComposedWarp.for_flight(f.image, crs, grid.uav_transform),
-                                str(gdir / f"{f.id}.tif"), tuple(grid.uav_transform)[:6],
+                                str(run.grid_raster(f.id)), tuple(grid.uav_transform)[:6],
                                 grid.uav_shape, BLOCK_PX,
                                 provenance_tags("grid", params, [f.image]), f"flight {f.id}")
                  for f in site.flights]
@@ -124,7 +107,7 @@ def run_grid(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                              "resampled": "on the fly (keep_intermediates = false)"}
     if site.satellite is not None:
         written["satellite"] = reproject_to_grid(
-            site.satellite.image, gdir / "satellite.tif", crs=crs, transform=grid.sat_transform,
+            site.satellite.image, run.satellite_grid, crs=crs, transform=grid.sat_transform,
             shape=grid.sat_shape, what="satellite scene", block_px=BLOCK_PX,
             tags=provenance_tags("grid", params, [site.satellite.image]))
     doc = grid.to_dict()
@@ -132,22 +115,28 @@ def run_grid(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                           "pixels; the satellite scene is cut to it")
     doc["sources"] = {k: {kk: v[kk] for kk in ("source_crs", "valid_px", "resampled")
                           if kk in v} for k, v in written.items()}
-    write_json(gdir / "grid.json", doc)
+    write_json(run.grid_json, doc)
     rows, cols = grid.uav_shape
-    return {"crs": _crs_name(crs), "uav_shape": list(grid.uav_shape),
-            "sat_shape": list(grid.sat_shape), "origin_m": [grid.uav_transform.c,
-                                                            grid.uav_transform.f],
-            "rasters": sorted(written),
-            "text": f"{_crs_name(crs)}, UAV grid {cols}×{rows} px at {p.uav_gsd_m} m, "
-                    f"{len(site.flights)} flight(s)"
-                    + (" + satellite" if site.satellite is not None else "")}
+    outputs = [run.grid_json]
+    if p.keep_intermediates:
+        outputs += [run.grid_raster(f.id) for f in site.flights]
+    if site.satellite is not None:
+        outputs.append(run.satellite_grid)
+    return StepResult(
+        summary=(f"{_crs_name(crs)}, UAV grid {cols}×{rows} px at {p.uav_gsd_m} m, "
+                 f"{len(site.flights)} flight(s)"
+                 + (" + satellite" if site.satellite is not None else "")),
+        outputs=[run.rel(o) for o in outputs],
+        record={"crs": _crs_name(crs), "uav_shape": list(grid.uav_shape),
+                "sat_shape": list(grid.sat_shape),
+                "origin_m": [grid.uav_transform.c, grid.uav_transform.f],
+                "rasters": sorted(written)})
 
 
 # --------------------------------------------------------------------------- footprints
 
 
-@_bounded_gdal_cache
-def run_footprints(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+def run_footprints(site: SiteConfig, out: RunPath) -> StepResult:
     """Trace valid-data footprints on the grid and intersect them.
 
     Writes ``footprints.geojson`` (+ ``.gpkg`` in the site CRS) with each raster's
@@ -160,8 +149,8 @@ def run_footprints(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     ExtentError
         The flights' common extent is empty or smaller than 100 × 100 UAV pixels.
     """
-    out = Path(out_dir)
-    grid = read_grid(out)
+    run = RunDir.of(out)
+    grid = read_grid(run)
     p = site.parameters
     fps: dict[str, Any] = {}
     rows = []
@@ -172,7 +161,7 @@ def run_footprints(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                      "source": str(f.image), "area_m2": fps[f.id].area,
                      "bbox_area_m2": fps[f.id].envelope.area, "geometry": fps[f.id]})
     sat_fp = None
-    sat_path = out / "grid" / "satellite.tif"
+    sat_path = run.satellite_grid
     if site.satellite is not None and sat_path.is_file():
         sat_fp = raster_footprint(sat_path, reduce_px=1, simplify_m=p.footprint_simplify_m)
         rows.append({"id": "satellite", "kind": "satellite",
@@ -181,8 +170,8 @@ def run_footprints(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                      "source": str(site.satellite.image), "area_m2": sat_fp.area,
                      "bbox_area_m2": sat_fp.envelope.area, "geometry": sat_fp})
     gdf = gpd.GeoDataFrame(rows, geometry="geometry", crs=grid.crs.to_wkt())
-    write_geojson(gdf, out / "footprints.geojson")
-    write_gpkg(gdf, out / "footprints.gpkg", layer="footprints")
+    write_geojson(gdf, run.footprints_geojson)
+    write_gpkg(gdf, run.footprints_gpkg, layer="footprints")
 
     min_area = MIN_COMMON_UAV_PX * grid.uav_gsd_m ** 2
     common = common_extent(fps, min_area_m2=min_area)
@@ -198,25 +187,26 @@ def run_footprints(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                         **{f"coverage_{k}": sat_area / v.area for k, v in fps.items()},
                         "geometry": with_sat if not with_sat.is_empty else None})
     ce = gpd.GeoDataFrame(ce_rows, geometry="geometry", crs=grid.crs.to_wkt())
-    write_geojson(ce, out / "common_extent.geojson")
-    write_gpkg(ce, out / "common_extent.gpkg", layer="common_extent")
-    summary = {"common_area_m2": round(common.area, 3),
-               "footprint_area_m2": {k: round(v.area, 3) for k, v in fps.items()},
-               "satellite_overlap_m2": None if sat_area is None else round(sat_area, 3)}
-    summary["text"] = (f"common extent {common.area:.0f} m² of {len(fps)} flight(s)"
-                       + ("" if sat_area is None else f", {sat_area:.0f} m² with the satellite"))
+    write_geojson(ce, run.common_extent_geojson)
+    write_gpkg(ce, run.common_extent_gpkg, layer="common_extent")
+    warnings = []
     if sat_area is not None and sat_area <= 0:
-        summary["warning"] = ("the satellite footprint does not overlap the flights' common "
-                              "extent: calibration and diagnosis will have nothing to compare")
-    return summary
+        warnings.append("the satellite footprint does not overlap the flights' common "
+                        "extent: calibration and diagnosis will have nothing to compare")
+    return StepResult(
+        summary=(f"common extent {common.area:.0f} m² of {len(fps)} flight(s)"
+                 + ("" if sat_area is None else f", {sat_area:.0f} m² with the satellite")),
+        warnings=warnings,
+        outputs=[run.rel(o) for o in (run.footprints_geojson, run.footprints_gpkg,
+                                      run.common_extent_geojson, run.common_extent_gpkg)],
+        record={"common_area_m2": round(common.area, 3),
+                "footprint_area_m2": {k: round(v.area, 3) for k, v in fps.items()},
+                "satellite_overlap_m2": None if sat_area is None else round(sat_area, 3)})
 
 
-def read_common_extent(out_dir: Path):
+def read_common_extent(out: RunPath) -> Any:
     """The flights' common extent polygon (site CRS) from ``common_extent.gpkg``."""
-    path = Path(out_dir) / "common_extent.gpkg"
-    if not path.is_file():
-        raise InputFileError(f"{path} not found; run the footprints step ('geosim grid') first")
-    gdf = gpd.read_file(path)
+    gdf = gpd.read_file(RunDir.of(out).require_common_extent())
     return gdf.loc[gdf["name"] == "flights"].geometry.iloc[0]
 
 
@@ -250,9 +240,9 @@ def _identity_anchor(center_m: list[float]) -> dict[str, Any]:
             "method": ANCHOR_NONE_METHOD, "model": "identity"}
 
 
-def _flights_on_grid(site: SiteConfig, out: Path, grid: SiteGrid) -> dict[str, Path]:
+def _flights_on_grid(site: SiteConfig, run: RunDir, grid: SiteGrid) -> dict[str, Path]:
     """``grid/<flight>.tif`` of every flight, written (identity warp) where absent."""
-    paths = {f.id: out / "grid" / f"{f.id}.tif" for f in site.flights}
+    paths = {f.id: run.grid_raster(f.id) for f in site.flights}
     tasks = [WarpRasterTask(ComposedWarp.for_flight(f.image, grid.crs, grid.uav_transform),
                             str(paths[f.id]), tuple(grid.uav_transform)[:6], grid.uav_shape,
                             BLOCK_PX, provenance_tags("grid", {"resampling": "bicubic"},
@@ -263,17 +253,17 @@ def _flights_on_grid(site: SiteConfig, out: Path, grid: SiteGrid) -> dict[str, P
 
 
 @contextlib.contextmanager
-def _reference_on_grid(site: SiteConfig, out: Path, grid: SiteGrid, window: Window
+def _reference_on_grid(site: SiteConfig, run: RunDir, grid: SiteGrid, window: Window
                        ) -> Iterator[tuple[Path, Window]]:
     """The reference flight on the site grid over ``window``: ``grid/<ref>.tif`` when kept
     (``keep_intermediates``), otherwise a temporary one-warp copy of that window only."""
     ref_id = site.reference_flight
-    kept = out / "grid" / f"{ref_id}.tif"
+    kept = run.grid_raster(ref_id)
     if kept.is_file():
         yield kept, window
         return
     ref = next(f for f in site.flights if f.id == ref_id)
-    with tempfile.TemporaryDirectory(dir=out, prefix=".anchor-") as tmp:
+    with tempfile.TemporaryDirectory(dir=run.root, prefix=".anchor-") as tmp:
         path = Path(tmp) / f"{ref_id}.tif"
         warp_raster_task(WarpRasterTask(
             ComposedWarp.for_flight(ref.image, grid.crs, grid.uav_transform), str(path),
@@ -282,7 +272,7 @@ def _reference_on_grid(site: SiteConfig, out: Path, grid: SiteGrid, window: Wind
         yield path, Window(0, 0, int(window.width), int(window.height))
 
 
-def anchor_to_satellite(site: SiteConfig, out_dir: Path, grid: SiteGrid, window: Any,
+def anchor_to_satellite(site: SiteConfig, out: RunPath, grid: SiteGrid, window: Any,
                         center_m: list[float]) -> tuple[Affine, dict[str, Any]]:
     """Register the reference flight to the satellite scene on the 0.5 m grid.
 
@@ -305,15 +295,13 @@ def anchor_to_satellite(site: SiteConfig, out_dir: Path, grid: SiteGrid, window:
     InputFileError
         ``grid/satellite.tif`` is missing.
     """
-    out = Path(out_dir)
+    run = RunDir.of(out)
     ref_id = site.reference_flight
-    sat_path = out / "grid" / "satellite.tif"
-    if not sat_path.is_file():
-        raise InputFileError(f"{sat_path} not found: site.anchor = 'satellite' registers the "
-                             "reference flight to it; run 'geosim grid' (or 'geosim run') "
-                             "first")
+    sat_path = run.require(run.satellite_grid, "grid",
+                           what="(site.anchor = 'satellite' registers the reference flight "
+                                "to it)")
     phi = grid.phi
-    with _reference_on_grid(site, out, grid, window) as (ref_path, ref_win):
+    with _reference_on_grid(site, run, grid, window) as (ref_path, ref_win):
         ref_grey, ref_valid = anc.read_area_averaged(ref_path, ref_win, phi,
                                                      block_px=(BLOCK_PX // phi) * phi)
     sat_win = Window(int(window.col_off) // phi, int(window.row_off) // phi,
@@ -345,7 +333,7 @@ def anchor_to_satellite(site: SiteConfig, out_dir: Path, grid: SiteGrid, window:
         "model": fit.model,
         "correction_affine": [float(v) for v in list(t)[:6]],
         "reference_flight": ref_id,
-        "satellite": "grid/satellite.tif",
+        "satellite": run.rel(run.satellite_grid),
         "satellite_source": str(sat_name),
         "window_sat_px": {"col_off": int(sat_win.col_off), "row_off": int(sat_win.row_off),
                           "width": int(sat_win.width), "height": int(sat_win.height)},
@@ -359,7 +347,7 @@ def anchor_to_satellite(site: SiteConfig, out_dir: Path, grid: SiteGrid, window:
     return t, record
 
 
-def _local_fields(site: SiteConfig, out: Path, grid: SiteGrid, awin: Window,
+def _local_fields(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
                   m_grids: dict[str, np.ndarray], gpath: dict[str, Path],
                   params: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """``align_model = "local"``: estimate each flight's displacement field and re-resample.
@@ -380,23 +368,21 @@ def _local_fields(site: SiteConfig, out: Path, grid: SiteGrid, awin: Window,
     for f in site.flights:
         if f.id == ref_id:
             continue
-        shifts = la.measure_local_shifts(out / "aligned" / f"{ref_id}.tif",
-                                         out / "aligned" / f"{f.id}.tif", what=f.id)
+        shifts = la.measure_local_shifts(run.aligned(ref_id), run.aligned(f.id), what=f.id)
         shifts = reject_outliers(shifts, min_confidence=site.parameters.min_align_confidence)
         field = fit_field(shifts, aligned_transform, shape)
-        rel = f"alignment_field/{f.id}.tif"
-        tags = provenance_tags("align", params, [out / "aligned" / f"{ref_id}.tif", gpath[f.id]],
-                               base_dir=out)
-        la.write_field_geotiff(out / rel, field, grid.crs, tags=tags)
-        la.apply_local_alignment(gpath[f.id], out / "aligned" / f"{f.id}.tif",
+        rel = run.rel(run.alignment_field(f.id))
+        tags = provenance_tags("align", params, [run.aligned(ref_id), gpath[f.id]],
+                               base_dir=run.root)
+        la.write_field_geotiff(run.alignment_field(f.id), field, grid.crs, tags=tags)
+        la.apply_local_alignment(gpath[f.id], run.aligned(f.id),
                                  m_grid=m_grids[f.id], field=field, out_window=awin,
                                  block_px=BLOCK_PX, what=f.id, tags=tags)
         records[f.id] = la.field_record(field, shifts, rel)
     return records
 
 
-@_bounded_gdal_cache
-def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+def run_align(site: SiteConfig, out: RunPath) -> StepResult:
     """Register every flight to the reference and resample it onto the aligned grid.
 
     With ``site.anchor = "satellite"`` the reference flight is also registered to the
@@ -416,9 +402,9 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
         A flight's registration confidence (or the reference flight's against the
         satellite, with the satellite anchor) is below ``min_align_confidence``.
     """
-    out = Path(out_dir)
-    grid = read_grid(out)
-    common = read_common_extent(out)
+    run = RunDir.of(out)
+    grid = read_grid(run)
+    common = read_common_extent(run)
     p = site.parameters
     ref_id = site.reference_flight
     awin = al.aligned_window(common, grid)
@@ -445,13 +431,13 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
             entry.update(confidence=reg["confidence"], matrix_px=reg["matrix_px"],
                          kernel=reg["kernel"])
         entry["window"] = win_dict
-        entry["path"] = f"aligned/{f.id}.tif"
+        entry["path"] = run.rel(run.aligned(f.id))
         entries[f.id] = entry
 
     center_m = entries[ref_id]["center_m"]
     params = {"reference": ref_id, "align_window_px": p.align_window_px}
     if site.anchor == "satellite":
-        t_anchor, anchor = anchor_to_satellite(site, out, grid, awin, center_m)
+        t_anchor, anchor = anchor_to_satellite(site, run, grid, awin, center_m)
         entries = {k: anc.compose_entry(e, t_anchor, grid.uav_transform)
                    for k, e in entries.items()}
         from shapely.affinity import affine_transform
@@ -475,17 +461,17 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
         # C⁻¹ in map coordinates: aligned frame → the flight's stated frame
         c_inv = al._affine_from_3x3(g3 @ m_grid @ np.linalg.inv(g3))
         tasks.append(WarpRasterTask(
-            warps[f.id].with_correction(c_inv), str(out / "aligned" / f"{f.id}.tif"),
+            warps[f.id].with_correction(c_inv), str(run.aligned(f.id)),
             tuple(aligned_transform)[:6], (int(awin.height), int(awin.width)), BLOCK_PX,
             provenance_tags("align", {**params, "resampled": "once, from the original flight"},
-                            [f.image], base_dir=out), f.id))
+                            [f.image], base_dir=run.root), f.id))
     parallel_map(warp_raster_task, tasks)
     if p.align_model == "local":
         params["align_model"] = "local"
         # the local field is still applied from flights on the site grid (see
         # _flights_on_grid); plugging it into ComposedWarp.field would make it one warp
-        gpath = _flights_on_grid(site, out, grid)
-        for fid, rec in _local_fields(site, out, grid, awin, m_grids, gpath, params).items():
+        gpath = _flights_on_grid(site, run, grid)
+        for fid, rec in _local_fields(site, run, grid, awin, m_grids, gpath, params).items():
             entries[fid]["local_field"] = rec
 
     # local check: remaining shift field between each aligned flight and the reference
@@ -495,7 +481,7 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
     for f in site.flights:
         if f.id == ref_id:
             continue
-        recs = al.local_check(out / "aligned" / f"{ref_id}.tif", out / "aligned" / f"{f.id}.tif",
+        recs = al.local_check(run.aligned(ref_id), run.aligned(f.id),
                               window_px=win_px, block_px=BLOCK_PX,
                               min_confidence=p.min_align_confidence, what=f.id)
         shifts = np.array([[r["dx_px"], r["dy_px"]] for r in recs]).reshape(-1, 2)
@@ -508,7 +494,7 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
 
         gdf = gpd.GeoDataFrame(pd.concat(arrows, ignore_index=True), geometry="geometry",
                                crs=grid.crs.to_wkt())
-        write_geojson(gdf, out / "alignment_check.geojson")
+        write_geojson(gdf, run.alignment_check_geojson)
 
     doc = {
         "reference": ref_id,
@@ -526,22 +512,27 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
         "flights": entries,
         "local_check": local,
     }
-    write_json(out / "alignment.json", doc)
+    write_json(run.alignment_json, doc)
     worst = max((abs(e["shift_m"][0]) + abs(e["shift_m"][1]), k) for k, e in entries.items())
     anchor_text = ("" if anchor["to"] != "satellite" else
                    f"; anchored to the satellite (shift {anchor['shift_m'][0]:+.3f}, "
                    f"{anchor['shift_m'][1]:+.3f} m, {anchor['model']}, confidence "
                    f"{anchor['confidence']:.2f})")
-    summary: dict[str, Any] = {}
+    warnings = []
     fallback = {k: e["local_field"]["fallback"]["node_fraction"] for k, e in entries.items()
                 if "local_field" in e and e["local_field"]["fallback"]["node_fraction"] > 0}
     if fallback:
-        summary["warning"] = ("local field not estimated (global similarity kept) on "
-                              + ", ".join(f"{v:.1%} of the nodes of {k}"
-                                          for k, v in fallback.items())
-                              + "; see local_field.fallback in alignment.json and the masks of "
-                              "alignment_field/")
-    return {**summary, "reference": ref_id, "aligned_shape": [int(awin.height), int(awin.width)],
+        warnings.append("local field not estimated (global similarity kept) on "
+                        + ", ".join(f"{v:.1%} of the nodes of {k}" for k, v in fallback.items())
+                        + "; see local_field.fallback in alignment.json and the masks of "
+                        "alignment_field/")
+    outputs = [run.alignment_json] + [run.aligned(f.id) for f in site.flights]
+    outputs += [run.alignment_field(k) for k, e in entries.items() if "local_field" in e]
+    if p.align_model == "local" and not p.keep_intermediates:
+        outputs += [run.grid_raster(f.id) for f in site.flights]  # written for the field
+    if arrows:
+        outputs.append(run.alignment_check_geojson)
+    record = {"reference": ref_id, "aligned_shape": [int(awin.height), int(awin.width)],
             "anchor": {"to": anchor["to"], "shift_m": [round(v, 4) for v in anchor["shift_m"]],
                        "rotation_deg": round(anchor["rotation_deg"], 5),
                        "scale": round(anchor["scale"], 6),
@@ -552,43 +543,38 @@ def run_align(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                             "confidence": round(e["confidence"], 3)}
                         for k, e in entries.items()},
             "local_median_shift_px": {k: v["median_shift_px"] for k, v in local.items()},
-            "align_model": p.align_model,
-            "text": f"{len(entries)} flight(s) on reference {ref_id} ({p.align_model}); "
-                    f"aligned grid {int(awin.width)}×{int(awin.height)} px; largest |shift| "
-                    f"at flight {worst[1]}{anchor_text}"}
+            "align_model": p.align_model}
+    return StepResult(
+        summary=(f"{len(entries)} flight(s) on reference {ref_id} ({p.align_model}); "
+                 f"aligned grid {int(awin.width)}×{int(awin.height)} px; largest |shift| "
+                 f"at flight {worst[1]}{anchor_text}"),
+        warnings=warnings, outputs=[run.rel(o) for o in outputs], record=record)
 
 
 # --------------------------------------------------------------------------- tiles
 
 
-def read_alignment(out_dir: Path) -> dict[str, Any]:
+def read_alignment(out: RunPath) -> dict[str, Any]:
     """``alignment.json`` (InputFileError if absent)."""
-    path = Path(out_dir) / "alignment.json"
-    if not path.is_file():
-        raise InputFileError(f"{path} not found; run 'geosim align' first")
-    return json.loads(path.read_text())
+    return json.loads(RunDir.of(out).require_alignment().read_text())
 
 
-@_bounded_gdal_cache
-def run_tiles(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+def run_tiles(site: SiteConfig, out: RunPath) -> StepResult:
     """Cut every flight's aligned raster into ``tile_px`` tiles with the same ids.
 
-    Writes ``tiles/<flight>/<tile_id>.tif`` and ``tiles/index.geojson`` (+ ``.gpkg``).
+    Writes ``tiles/<flight>/<tile_id>.tif`` and ``tiles/index.geojson`` (+ ``.gpkg``,
+    ``.json``). Tiles of an earlier run that this one does not write are removed by the
+    runner (:func:`geosim.pipeline.run_pipeline`), from run.json's record of outputs.
     """
-    from affine import Affine
-
-    out = Path(out_dir)
-    grid = read_grid(out)
-    doc = read_alignment(out)
+    run = RunDir.of(out)
+    grid = read_grid(run)
+    doc = read_alignment(run)
     p = site.parameters
     ag = doc["aligned_grid"]
     aligned_transform = Affine(*ag["transform"])
     shape = (int(ag["shape"][0]), int(ag["shape"][1]))
     tiles = list(iter_tiles(shape, aligned_transform, p.tile_px))
-    apath = {f.id: out / "aligned" / f"{f.id}.tif" for f in site.flights}
-    for fid, path in apath.items():
-        if not path.is_file():
-            raise InputFileError(f"{path} not found; run 'geosim align' first (flight {fid})")
+    apath = {f.id: run.require_aligned(f.id) for f in site.flights}
     fractions = parallel_map(coverage_task, [CoverageTask(str(path), tuple(t.window for t in tiles))
                                              for path in apath.values()])
     coverage = dict(zip(apath, fractions, strict=True))
@@ -601,55 +587,47 @@ def run_tiles(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
                           f"{why}; set a smaller parameters.tile_px (a multiple of "
                           f"{p.phi}) or keep_partial_tiles = true")
     params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles}
-    keep: dict[str, set[str]] = {fid: set() for fid in apath}
     jobs = [(t, fid) for t, cov in selected for fid in apath if cov[fid] > 0]
     parallel_map(cut_tile_task, [
-        CutTileTask(str(apath[fid]), str(out / "tiles" / fid / f"{t.id}.tif"), t,
-                    {**provenance_tags("tiles", params, [apath[fid]], base_dir=out),
+        CutTileTask(str(apath[fid]), str(run.tile(fid, t.id)), t,
+                    {**provenance_tags("tiles", params, [apath[fid]], base_dir=run.root),
                      "GEOSIM_TILE_ID": t.id}) for t, fid in jobs])
-    for t, fid in jobs:
-        keep[fid].add(t.id)
-    written = len(jobs)
-    for fid, ids in keep.items():  # remove tiles left by an earlier run with other settings
-        d = out / "tiles" / fid
-        if d.is_dir():
-            for stale in d.glob("r*_c*.tif"):
-                if stale.stem not in ids:
-                    stale.unlink()
+    outputs: list[Path] = [run.tile(fid, t.id) for t, fid in jobs]
+    written = len(outputs)
     records = index_records(selected, _crs_name(grid.crs), p.tile_px)
     from shapely.geometry import box
 
     gdf = gpd.GeoDataFrame(records, geometry=[box(r["minx"], r["miny"], r["maxx"], r["maxy"])
                                               for r in records], crs=grid.crs.to_wkt())
-    (out / "tiles").mkdir(parents=True, exist_ok=True)
-    write_geojson(gdf, out / "tiles" / "index.geojson")
-    write_gpkg(gdf, out / "tiles" / "index.gpkg", layer="tiles")
-    write_json(out / "tiles" / "index.json", {"crs": _crs_name(grid.crs), "tile_px": p.tile_px,
-                                              "aligned_transform": ag["transform"],
-                                              "tiles": records})
+    run.tiles_dir.mkdir(parents=True, exist_ok=True)
+    write_geojson(gdf, run.tiles_index_geojson)
+    write_gpkg(gdf, run.tiles_index_gpkg, layer="tiles")
+    write_json(run.tiles_index_json, {"crs": _crs_name(grid.crs), "tile_px": p.tile_px,
+                                      "aligned_transform": ag["transform"],
+                                      "tiles": records})
+    outputs += [run.tiles_index_geojson, run.tiles_index_gpkg, run.tiles_index_json]
     n_all = len(tiles)
-    return {"tiles": len(selected), "tiles_considered": n_all, "files": written,
-            "tile_px": p.tile_px,
-            "text": f"{len(selected)} of {n_all} tile(s) of {p.tile_px} px kept, "
-                    f"{written} file(s)"}
+    return StepResult(
+        summary=(f"{len(selected)} of {n_all} tile(s) of {p.tile_px} px kept, "
+                 f"{written} file(s)"),
+        outputs=[run.rel(o) for o in outputs],
+        record={"tiles": len(selected), "tiles_considered": n_all, "files": written,
+                "tile_px": p.tile_px})
 
 
 # --------------------------------------------------------------------------- pairs
 
 
-@_bounded_gdal_cache
-def run_pairs(site: SiteConfig, out_dir: Path) -> dict[str, Any]:
+def run_pairs(site: SiteConfig, out: RunPath) -> StepResult:
     """Write ``pairs.csv``: every unordered flight pair for every tile (paths, not pixels)."""
-    out = Path(out_dir)
-    path = out / "tiles" / "index.json"
-    if not path.is_file():
-        raise InputFileError(f"{path} not found; run 'geosim tile' first")
-    records = json.loads(path.read_text())["tiles"]
+    run = RunDir.of(out)
+    records = json.loads(run.require_tiles_index().read_text())["tiles"]
     acquired = {f.id: f.acquired for f in site.flights}
     rows = pair_rows(records, [f.id for f in site.flights], acquired)
-    write_text(out / "pairs.csv", pairs_csv_text(rows))
-    return {"pairs": len(rows), "tiles": len(records),
-            "text": f"{len(rows)} pair(s) over {len(records)} tile(s)"}
+    write_text(run.pairs_csv, pairs_csv_text(rows))
+    return StepResult(summary=f"{len(rows)} pair(s) over {len(records)} tile(s)",
+                      outputs=[run.rel(run.pairs_csv)],
+                      record={"pairs": len(rows), "tiles": len(records)})
 
 
 __all__ = ["run_grid", "run_footprints", "run_align", "run_tiles", "run_pairs", "read_grid"]

@@ -22,12 +22,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import shapely
-from shapely.geometry import Point
 
 from geosim.samples.illumination import Illumination
 from geosim.samples.render_grid import RenderGrid
@@ -259,17 +258,6 @@ def move_herd(rng: np.random.Generator, cows: Sequence[Cow], group_of: dict[int,
         out.append(moved)
     order = {c.animal.id: i for i, c in enumerate(cows)}
     return sorted(out, key=lambda c: order[c.animal.id])
-
-
-def cows_near(cows: Sequence[Cow], x: float, y: float, radius_m: float) -> list[Cow]:
-    """Cows whose body mid-point lies within ``radius_m`` of (x, y)."""
-    p = Point(x, y)
-    return [c for c in cows if p.distance(Point(c.x, c.y)) <= radius_m]
-
-
-def with_pose(cow: Cow, **changes: float) -> Cow:
-    """A copy of ``cow`` with some pose fields changed."""
-    return replace(cow, **changes)
 
 
 # -------------------------------------------------------------------- rendering

@@ -273,6 +273,165 @@ def _relative(spec: flights_mod.FlightSpec, ref: flights_mod.FlightSpec) -> dict
 # ---------------------------------------------------------------------- main
 
 
+def _flight_cattle(in_flight: list[Any], spec: Any, prev_pose: dict[int, Any] | None,
+                   world: Any) -> tuple[list[dict[str, Any]], list[Any]]:
+    """Truth entries and label boxes (image px) of the cattle in one flight."""
+    to_stated = ~spec.stated_to_true
+    entries, boxes = [], []
+    for c in in_flight:
+        centre = c.centre_xy()
+        b = labels_mod.box_in_image(c.outline(), to_stated, spec.stated_transform)
+        boxes.append(b)
+        sb = labels_mod.stated_boxes([b], spec.stated_transform)[0].bounds
+        moved = None
+        if prev_pose is not None:
+            p = prev_pose[c.animal.id]
+            moved = (p.x, p.y, p.heading_deg) != (c.x, c.y, c.heading_deg)
+        entries.append({
+            "id": c.animal.id, "coat": c.animal.coat,
+            "length_m": _r(c.animal.length_m, 4), "width_m": _r(c.animal.width_m, 4),
+            "heading_deg": _r(c.heading_deg, 3), "head_turn_deg": _r(c.head_turn_deg, 3),
+            "grazing": c.grazing,
+            "centre_xy": _xy(centre), "body_xy": _xy((c.x, c.y)),
+            "centre_stated_xy": _xy(to_stated @ centre),
+            "box_px": [_r(v, 3) for v in b],
+            "box_stated": [_r(v, 4) for v in sb],
+            "paddock": world.layout.paddock_of(*centre),
+            "moved_since_previous_flight": moved,
+        })
+    return entries, boxes
+
+
+#: Conventions of truth.json, written into it.
+TRUTH_CONVENTIONS: dict[str, str] = {
+        "map_units": "metres; x = easting, y = northing",
+        "pixel_coordinates": "(col, row) of the pixel's outer corner (rasterio); "
+                             "pixel centres at +0.5",
+        "transform": "rasterio Affine coefficients [a, b, c, d, e, f]: "
+                     "x = a*col + b*row + c, y = d*col + e*row + f",
+        "georef_error": "stated_to_true maps coordinates in a flight's stated frame (the "
+                        "file's transform) to true coordinates: p_true = c + shift_m + "
+                        "scale * R(rotation_deg) * (p_stated - c), c = about_stated_xy (the "
+                        "image centre), R counter-clockwise positive in the east-north "
+                        "plane. As matrix [[a, b, c], [d, e, f]]: x_true = a*x + b*y + c, "
+                        "y_true = d*x + e*y + f. true_transform = stated_to_true * "
+                        "stated_transform. A pixel shows the ground at true_transform * "
+                        "(col, row) (plus local warps).",
+        "relative_to_reference": "maps this flight's stated frame to the reference "
+                                 "flight's stated frame (what an alignment to PA1 "
+                                 "should recover)",
+        "heading_deg": "direction the animal's head points, clockwise from grid north",
+        "cattle_centre": "centre_xy = centre of the animal's outline's axis-aligned box "
+                         "in EPSG:28356 (true position); centre_stated_xy = the same "
+                         "point in the flight's stated frame; box_px = the label box "
+                         "(col_min, row_min, col_max, row_max) in the flight image; "
+                         "body_xy = body-axis mid-point",
+        "local_warp": "the pixel at p shows what the undistorted image shows at p + d(p), "
+                      "d = g*(amplitude_px*(cos a, sin a) + swirl_px*(p-c)perp/sigma_px), "
+                      "g = exp(-|p-c|^2/(2 sigma_px^2)), pixel units",
+        "exposure_seam": "pixels left of the directed line p0 -> p1 (image axes, row "
+                         "down) are multiplied by gain_left",
+        "radiometry": "scene radiance in DN where sunlit flat ground equals its albedo; "
+                      "flights multiply by exposure_gain * white_balance_rgb; the "
+                      "satellite chain's haze applies to the same radiance",
+        "cattle_rules": "every animal is >= 3 m from fences and from every flight "
+                        "footprint edge, clear of the dam, trough, tree crowns and warps",
+    }
+
+
+def _satellite_scene(out: Path, seed: int, world: Any, herd: Any, reference: Any,
+                     lonlat: tuple[float, float], steps: Any) -> dict[str, Any]:
+    """Render and write the satellite scene; its truth (truth.json ``satellite``)."""
+    lon, lat = lonlat
+    rng_sat = component_rng(seed, "satellite")
+    sat = sat_mod.make_satellite_spec(rng_sat, SATELLITE_TIME, CENTRE_XY)
+    fine = sat.fine_grid()
+    corners = np.array([fine.pixel_to_map @ (c, r) for c, r in
+                        ((0, 0), (fine.width, 0), (fine.width, fine.height), (0, fine.height))])
+    sat_fp = Polygon(corners)
+    sat_allowed = _allowed_region(world, sat_fp.buffer(-5.0), [], [])
+    sat_poses = _satellite_day_herd(component_rng(seed, "satellite-cattle"), herd, sat_allowed)
+    sat_sun = sun_for(SATELLITE_TIME, lon, lat, WORLD_CRS)
+    radiance = render(world, fine, Illumination(sat_sun), sat_poses)
+    steps.update()
+    sat_img = sat_mod.apply_chain(radiance, sat.chain, component_rng(seed, "satellite-noise"))
+    del radiance
+    write_geotiff(out / "satellite" / "satellite.tif", sat_img, transform=sat.transform,
+                  crs=sat_mod.SAT_CRS, band_descriptions=["red", "green", "blue"],
+                  tags={**provenance_tags("samples", {"seed": seed, "scene": "satellite"}),
+                        "TIFFTAG_DATETIME": SATELLITE_TIME.strftime("%Y:%m:%d %H:%M:%S")})
+    steps.update()
+    to_sat = Transformer.from_crs(WORLD_CRS, sat_mod.SAT_CRS, always_xy=True)
+    sat_entries = []
+    for c in sat_poses:
+        centre = c.centre_xy()
+        col, row = sat.world_to_pixel(np.array(centre[0]), np.array(centre[1]))
+        sat_entries.append({
+            "id": c.animal.id, "coat": c.animal.coat, "length_m": _r(c.animal.length_m, 4),
+            "width_m": _r(c.animal.width_m, 4), "heading_deg": _r(c.heading_deg, 3),
+            "centre_xy": _xy(centre), "centre_epsg32756_xy": _xy(to_sat.transform(*centre)),
+            "pixel_colrow": [_r(col, 3), _r(row, 3)],
+            "paddock": world.layout.paddock_of(*centre)})
+    sat_truth = sat_mod.satellite_truth(sat)
+    ref_inv = ~reference.stated_to_true
+    in_ref = ref_inv @ CENTRE_XY
+    sat_shift = sat.chain.shift_m
+    sat_truth.update({
+        "misregistration_vs_reference_flight": {
+            "reference": reference.id,
+            "shift_m_at_site_centre": [
+                _r(CENTRE_XY[0] + sat_shift[0] - in_ref[0], 4),
+                _r(CENTRE_XY[1] + sat_shift[1] - in_ref[1], 4)],
+            "note": "a feature at true p appears in the satellite file at p + shift_m and in "
+                    "the reference flight's stated frame at true_to_stated(p); this is the "
+                    "satellite-minus-reference offset at the site centre; away from the centre "
+                    "it changes with the reference flight's rotation and scale error, by "
+                    "about |rotation in radians| × distance (7.6 cm per 10 m for 0.43°)"},
+        "sun": _sun_dict(sat_sun),
+        "n_cattle": len(sat_entries),
+        "paddock_counts": {name: sum(e["paddock"] == name for e in sat_entries)
+                           for name in world.layout.paddocks},
+        "cattle": sat_entries,
+    })
+    return sat_truth
+
+
+def _truth_document(seed: int, lonlat: tuple[float, float], world: Any, herd: Any,
+                    truth_flights: dict[str, Any], sat_truth: dict[str, Any]) -> dict[str, Any]:
+    """The content of truth.json."""
+    lon, lat = lonlat
+    lay = world.layout
+    truth = {
+        "about": "Ground truth of the synthetic sample site made by geosim.samples",
+        "seed": seed,
+        "command": COMMAND.format(seed=seed),
+        "crs": {"world": WORLD_CRS, "flights": WORLD_CRS, "satellite": sat_mod.SAT_CRS,
+                "geojson": "EPSG:4326 (RFC 7946)"},
+        "site": {"name": "Southern Highlands sample", "centre_xy": list(CENTRE_XY),
+                 "centre_lonlat": [_r(lon, 6), _r(lat, 6)], "bounds": list(lay.bounds)},
+        "conventions": TRUTH_CONVENTIONS,
+        "world": {
+            "paddocks": {n: {"area_m2": _r(p.area, 1)} for n, p in lay.paddocks.items()},
+            "fences": [[_xy(p, 3) for p in f] for f in lay.fences],
+            "posts": len(lay.posts), "star_pickets": len(lay.pickets),
+            "trees": [{"id": t.id, "xy": _xy((t.x, t.y), 3),
+                       "crown_radius_m": _r(t.crown_radius_m, 3), "height_m": _r(t.height_m, 3),
+                       "crown_base_m": _r(t.crown_base_m, 3)} for t in lay.trees],
+            "dam": {"centroid_xy": _xy((lay.dam.centroid.x, lay.dam.centroid.y), 3),
+                    "area_m2": _r(lay.dam.area, 1)},
+            "trough": {"xy": _xy((lay.trough.x, lay.trough.y), 3),
+                       "heading_deg": _r(lay.trough.heading_deg, 3),
+                       "length_m": lay.trough.length_m, "width_m": lay.trough.width_m},
+            "track_centreline": [_xy(p, 2) for p in lay.track[::20]],
+        },
+        "herd": [{"id": a.id, "coat": a.coat, "length_m": _r(a.length_m, 4),
+                  "width_m": _r(a.width_m, 4)} for a in herd],
+        "flights": truth_flights,
+        "satellite": sat_truth,
+    }
+    return truth
+
+
 def make_sample_site(out_dir: str | Path, *, seed: int = 0,
                      echo: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Generate the sample site into ``out_dir``.
@@ -352,29 +511,7 @@ def make_sample_site(out_dir: str | Path, *, seed: int = 0,
         _write_flight(out / "flights" / f"{spec.id}.tif", img, mask, spec, seed)
         del img
 
-        to_stated = ~spec.stated_to_true
-        entries, boxes = [], []
-        for c in in_flight:
-            centre = c.centre_xy()
-            b = labels_mod.box_in_image(c.outline(), to_stated, spec.stated_transform)
-            boxes.append(b)
-            sb = labels_mod.stated_boxes([b], spec.stated_transform)[0].bounds
-            moved = None
-            if prev_pose is not None:
-                p = prev_pose[c.animal.id]
-                moved = (p.x, p.y, p.heading_deg) != (c.x, c.y, c.heading_deg)
-            entries.append({
-                "id": c.animal.id, "coat": c.animal.coat,
-                "length_m": _r(c.animal.length_m, 4), "width_m": _r(c.animal.width_m, 4),
-                "heading_deg": _r(c.heading_deg, 3), "head_turn_deg": _r(c.head_turn_deg, 3),
-                "grazing": c.grazing,
-                "centre_xy": _xy(centre), "body_xy": _xy((c.x, c.y)),
-                "centre_stated_xy": _xy(to_stated @ centre),
-                "box_px": [_r(v, 3) for v in b],
-                "box_stated": [_r(v, 4) for v in sb],
-                "paddock": world.layout.paddock_of(*centre),
-                "moved_since_previous_flight": moved,
-            })
+        entries, boxes = _flight_cattle(in_flight, spec, prev_pose, world)
         label_boxes[spec.id] = boxes
         counts = {name: sum(e["paddock"] == name for e in entries)
                   for name in world.layout.paddocks}
@@ -394,57 +531,7 @@ def make_sample_site(out_dir: str | Path, *, seed: int = 0,
         say(f"{spec.id}: {spec.width}×{spec.height} px, {len(entries)} cattle, "
             f"sun el {sun.elevation_deg:.1f}°")
 
-    # Satellite scene.
-    rng_sat = component_rng(seed, "satellite")
-    sat = sat_mod.make_satellite_spec(rng_sat, SATELLITE_TIME, CENTRE_XY)
-    fine = sat.fine_grid()
-    corners = np.array([fine.pixel_to_map @ (c, r) for c, r in
-                        ((0, 0), (fine.width, 0), (fine.width, fine.height), (0, fine.height))])
-    sat_fp = Polygon(corners)
-    sat_allowed = _allowed_region(world, sat_fp.buffer(-5.0), [], [])
-    sat_poses = _satellite_day_herd(component_rng(seed, "satellite-cattle"), herd, sat_allowed)
-    sat_sun = sun_for(SATELLITE_TIME, lon, lat, WORLD_CRS)
-    radiance = render(world, fine, Illumination(sat_sun), sat_poses)
-    steps.update()
-    sat_img = sat_mod.apply_chain(radiance, sat.chain, component_rng(seed, "satellite-noise"))
-    del radiance
-    write_geotiff(out / "satellite" / "satellite.tif", sat_img, transform=sat.transform,
-                  crs=sat_mod.SAT_CRS, band_descriptions=["red", "green", "blue"],
-                  tags={**provenance_tags("samples", {"seed": seed, "scene": "satellite"}),
-                        "TIFFTAG_DATETIME": SATELLITE_TIME.strftime("%Y:%m:%d %H:%M:%S")})
-    steps.update()
-    to_sat = Transformer.from_crs(WORLD_CRS, sat_mod.SAT_CRS, always_xy=True)
-    sat_entries = []
-    for c in sat_poses:
-        centre = c.centre_xy()
-        col, row = sat.world_to_pixel(np.array(centre[0]), np.array(centre[1]))
-        sat_entries.append({
-            "id": c.animal.id, "coat": c.animal.coat, "length_m": _r(c.animal.length_m, 4),
-            "width_m": _r(c.animal.width_m, 4), "heading_deg": _r(c.heading_deg, 3),
-            "centre_xy": _xy(centre), "centre_epsg32756_xy": _xy(to_sat.transform(*centre)),
-            "pixel_colrow": [_r(col, 3), _r(row, 3)],
-            "paddock": world.layout.paddock_of(*centre)})
-    sat_truth = sat_mod.satellite_truth(sat)
-    ref_inv = ~specs[0].stated_to_true
-    in_ref = ref_inv @ CENTRE_XY
-    sat_shift = sat.chain.shift_m
-    sat_truth.update({
-        "misregistration_vs_reference_flight": {
-            "reference": specs[0].id,
-            "shift_m_at_site_centre": [
-                _r(CENTRE_XY[0] + sat_shift[0] - in_ref[0], 4),
-                _r(CENTRE_XY[1] + sat_shift[1] - in_ref[1], 4)],
-            "note": "a feature at true p appears in the satellite file at p + shift_m and in "
-                    "the reference flight's stated frame at true_to_stated(p); this is the "
-                    "satellite-minus-reference offset at the site centre; away from the centre "
-                    "it changes with the reference flight's rotation and scale error, by "
-                    "about |rotation in radians| × distance (7.6 cm per 10 m for 0.43°)"},
-        "sun": _sun_dict(sat_sun),
-        "n_cattle": len(sat_entries),
-        "paddock_counts": {name: sum(e["paddock"] == name for e in sat_entries)
-                           for name in world.layout.paddocks},
-        "cattle": sat_entries,
-    })
+    sat_truth = _satellite_scene(out, seed, world, herd, specs[0], (lon, lat), steps)
 
     # Labels and paddocks.
     for spec in specs[:2]:
@@ -457,68 +544,7 @@ def make_sample_site(out_dir: str | Path, *, seed: int = 0,
     labels_mod.write_paddocks(out / "paddocks.geojson", world.layout.paddocks, WORLD_CRS)
     steps.update()
 
-    lay = world.layout
-    truth = {
-        "about": "Ground truth of the synthetic sample site made by geosim.samples",
-        "seed": seed,
-        "command": COMMAND.format(seed=seed),
-        "crs": {"world": WORLD_CRS, "flights": WORLD_CRS, "satellite": sat_mod.SAT_CRS,
-                "geojson": "EPSG:4326 (RFC 7946)"},
-        "site": {"name": "Southern Highlands sample", "centre_xy": list(CENTRE_XY),
-                 "centre_lonlat": [_r(lon, 6), _r(lat, 6)], "bounds": list(lay.bounds)},
-        "conventions": {
-            "map_units": "metres; x = easting, y = northing",
-            "pixel_coordinates": "(col, row) of the pixel's outer corner (rasterio); "
-                                 "pixel centres at +0.5",
-            "transform": "rasterio Affine coefficients [a, b, c, d, e, f]: "
-                         "x = a*col + b*row + c, y = d*col + e*row + f",
-            "georef_error": "stated_to_true maps coordinates in a flight's stated frame (the "
-                            "file's transform) to true coordinates: p_true = c + shift_m + "
-                            "scale * R(rotation_deg) * (p_stated - c), c = about_stated_xy (the "
-                            "image centre), R counter-clockwise positive in the east-north "
-                            "plane. As matrix [[a, b, c], [d, e, f]]: x_true = a*x + b*y + c, "
-                            "y_true = d*x + e*y + f. true_transform = stated_to_true * "
-                            "stated_transform. A pixel shows the ground at true_transform * "
-                            "(col, row) (plus local warps).",
-            "relative_to_reference": "maps this flight's stated frame to the reference "
-                                     "flight's stated frame (what an alignment to PA1 "
-                                     "should recover)",
-            "heading_deg": "direction the animal's head points, clockwise from grid north",
-            "cattle_centre": "centre_xy = centre of the animal's outline's axis-aligned box "
-                             "in EPSG:28356 (true position); centre_stated_xy = the same "
-                             "point in the flight's stated frame; box_px = the label box "
-                             "(col_min, row_min, col_max, row_max) in the flight image; "
-                             "body_xy = body-axis mid-point",
-            "local_warp": "the pixel at p shows what the undistorted image shows at p + d(p), "
-                          "d = g*(amplitude_px*(cos a, sin a) + swirl_px*(p-c)perp/sigma_px), "
-                          "g = exp(-|p-c|^2/(2 sigma_px^2)), pixel units",
-            "exposure_seam": "pixels left of the directed line p0 -> p1 (image axes, row "
-                             "down) are multiplied by gain_left",
-            "radiometry": "scene radiance in DN where sunlit flat ground equals its albedo; "
-                          "flights multiply by exposure_gain * white_balance_rgb; the "
-                          "satellite chain's haze applies to the same radiance",
-            "cattle_rules": "every animal is >= 3 m from fences and from every flight "
-                            "footprint edge, clear of the dam, trough, tree crowns and warps",
-        },
-        "world": {
-            "paddocks": {n: {"area_m2": _r(p.area, 1)} for n, p in lay.paddocks.items()},
-            "fences": [[_xy(p, 3) for p in f] for f in lay.fences],
-            "posts": len(lay.posts), "star_pickets": len(lay.pickets),
-            "trees": [{"id": t.id, "xy": _xy((t.x, t.y), 3),
-                       "crown_radius_m": _r(t.crown_radius_m, 3), "height_m": _r(t.height_m, 3),
-                       "crown_base_m": _r(t.crown_base_m, 3)} for t in lay.trees],
-            "dam": {"centroid_xy": _xy((lay.dam.centroid.x, lay.dam.centroid.y), 3),
-                    "area_m2": _r(lay.dam.area, 1)},
-            "trough": {"xy": _xy((lay.trough.x, lay.trough.y), 3),
-                       "heading_deg": _r(lay.trough.heading_deg, 3),
-                       "length_m": lay.trough.length_m, "width_m": lay.trough.width_m},
-            "track_centreline": [_xy(p, 2) for p in lay.track[::20]],
-        },
-        "herd": [{"id": a.id, "coat": a.coat, "length_m": _r(a.length_m, 4),
-                  "width_m": _r(a.width_m, 4)} for a in herd],
-        "flights": truth_flights,
-        "satellite": sat_truth,
-    }
+    truth = _truth_document(seed, (lon, lat), world, herd, truth_flights, sat_truth)
     write_json(out / "truth.json", truth)
     write_text(out / "site.toml", _site_toml())
     write_text(out / "README.md", _readme(truth, seed))

@@ -16,7 +16,6 @@ itself is not used at run time) are used in :mod:`geosim.samples.cattle` and
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import cv2
@@ -283,10 +282,3 @@ def build_ground(rng: np.random.Generator, layout: Layout, *, res_m: float = 0.1
                         grain_transform=Affine(grain_res_m, 0.0, minx, 0.0, -grain_res_m, maxy),
                         grain=np.ascontiguousarray(grain, dtype=np.float32))
 
-
-def ground_bounds_ok(ground: GroundRaster, x: float, y: float, margin_m: float = 0.0) -> bool:
-    """Whether a map point lies on the ground raster (with a margin)."""
-    t = ground.transform
-    rows, cols = ground.rgba.shape[:2]
-    return (t.c + margin_m <= x <= t.c + cols * t.a - margin_m
-            and t.f - rows * abs(t.e) + margin_m <= y <= t.f - margin_m) and math.isfinite(x)

@@ -14,14 +14,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from affine import Affine
 
 from geosim.samples import cattle as cattle_mod
 from geosim.samples import trees as trees_mod
 from geosim.samples.cattle import Cow
 from geosim.samples.ground import GroundRaster, build_ground
 from geosim.samples.illumination import Illumination
-from geosim.samples.render_grid import RenderGrid, grid_in_crs
+from geosim.samples.render_grid import RenderGrid
 from geosim.samples.trees import CrownPatch, build_crown, line_profile, segment_coverage
 from geosim.samples.world import Layout, build_layout
 
@@ -224,23 +223,3 @@ def render(world: World, grid: RenderGrid, illum: Illumination, cows: Sequence[C
         _composite(out, win, alpha, rad)
     return out
 
-
-def render_in_crs(world: World, crs: str, transform: Affine, width: int, height: int,
-                  illum: Illumination, cows: Sequence[Cow] = ()) -> np.ndarray:
-    """Render the world on any raster grid given as (CRS, transform, size).
-
-    Parameters
-    ----------
-    crs
-        The grid's CRS (e.g. ``"EPSG:32756"``).
-    transform
-        The grid's affine (pixel corner → CRS coordinates).
-    width, height
-        Grid size, pixels.
-
-    Returns
-    -------
-    numpy.ndarray
-        (3, height, width) float32 radiance in DN.
-    """
-    return render(world, grid_in_crs(crs, transform, width, height), illum, cows)
