@@ -262,10 +262,13 @@ def _copy_run(src: Path, dst: Path, flights: list[str]) -> None:
 def test_cli_calibrate(run_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "run"
     _copy_run(run_dir, out, ["B"])
+    # the site's inputs live outside the run folder (--out may not contain inputs)
+    _copy_run(run_dir, tmp_path / "inputs", ["B"])
+    inputs = tmp_path / "inputs"
     toml = tmp_path / "site.toml"
-    toml.write_text(f'[[flights]]\nid = "B"\nimage = "{out / "aligned" / "B.tif"}"\n'
+    toml.write_text(f'[[flights]]\nid = "B"\nimage = "{inputs / "aligned" / "B.tif"}"\n'
                     'acquired = 2021-07-15T13:10:00+10:00\n\n'
-                    f'[satellite]\nimage = "{out / "grid" / "satellite.tif"}"\n')
+                    f'[satellite]\nimage = "{inputs / "grid" / "satellite.tif"}"\n')
     result = CliRunner().invoke(cli, ["calibrate", str(toml), "--out", str(out)])
     assert result.exit_code == 0, result.output
     assert "mean Q = 3.0" in result.output and "geosim diagnose" in result.output

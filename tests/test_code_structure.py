@@ -18,6 +18,8 @@ EXEMPT_LONG_FUNCTIONS: dict[str, str] = {
 KNOWN_CYCLES: dict[frozenset[str], str] = {
     frozenset({"geosim.diagnose.effects", "geosim.diagnose.seam", "geosim.diagnose.fit"}):
         "effects -> seam -> fit -> effects, being removed by the diagnosis work of issue #11",
+    frozenset({"geosim.align.fourier_mellin", "geosim.align.refine"}):
+        "fourier_mellin <-> refine (from the one-refinement-loop work of issue #11)",
     frozenset({"geosim.config", "geosim.validate", "geosim.labels.sources"}):
         "config.load_site -> validate.check_raster_bands; validate.preflight -> "
         "labels.sources -> config (function-level imports, from issue #12's pre-flight "

@@ -126,6 +126,16 @@ def test_keep_partial_tiles_with_mask_and_pairs(tmp_path):
         assert not m[:10, 10:].any() and m[10:].all()
     # an earlier run's tiles that are no longer selected are removed (by the runner, which
     # knows from run.json which files the earlier run wrote)
+    import dataclasses
+    import shutil
+
+    inputs = tmp_path / "inputs"  # the runner refuses a site whose inputs are in --out
+    inputs.mkdir()
+    flights = []
+    for f in site.flights:
+        shutil.copy(f.image, inputs / f.image.name)
+        flights.append(dataclasses.replace(f, image=inputs / f.image.name))
+    site = dataclasses.replace(site, flights=tuple(flights))
     run_pipeline(site, out, only=["tiles"], echo=lambda s: None)
     site2, _, _ = make_run(tmp_path / "again", keep_partial=False)
     site2 = SiteConfig(**{**site2.__dict__, "flights": site.flights})

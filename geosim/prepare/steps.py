@@ -518,14 +518,6 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
                    f"; anchored to the satellite (shift {anchor['shift_m'][0]:+.3f}, "
                    f"{anchor['shift_m'][1]:+.3f} m, {anchor['model']}, confidence "
                    f"{anchor['confidence']:.2f})")
-    warnings = []
-    fallback = {k: e["local_field"]["fallback"]["node_fraction"] for k, e in entries.items()
-                if "local_field" in e and e["local_field"]["fallback"]["node_fraction"] > 0}
-    if fallback:
-        warnings.append("local field not estimated (global similarity kept) on "
-                        + ", ".join(f"{v:.1%} of the nodes of {k}" for k, v in fallback.items())
-                        + "; see local_field.fallback in alignment.json and the masks of "
-                        "alignment_field/")
     outputs = [run.alignment_json] + [run.aligned(f.id) for f in site.flights]
     outputs += [run.alignment_field(k) for k, e in entries.items() if "local_field" in e]
     if p.align_model == "local" and not p.keep_intermediates:
@@ -548,7 +540,19 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
         summary=(f"{len(entries)} flight(s) on reference {ref_id} ({p.align_model}); "
                  f"aligned grid {int(awin.width)}×{int(awin.height)} px; largest |shift| "
                  f"at flight {worst[1]}{anchor_text}"),
-        warnings=warnings, outputs=[run.rel(o) for o in outputs], record=record)
+        warnings=_fallback_warnings(entries), outputs=[run.rel(o) for o in outputs],
+        record=record)
+
+
+def _fallback_warnings(entries: dict[str, dict[str, Any]]) -> list[str]:
+    """A warning when the local field fell back to the global similarity somewhere."""
+    fallback = {k: e["local_field"]["fallback"]["node_fraction"] for k, e in entries.items()
+                if "local_field" in e and e["local_field"]["fallback"]["node_fraction"] > 0}
+    if not fallback:
+        return []
+    return ["local field not estimated (global similarity kept) on "
+            + ", ".join(f"{v:.1%} of the nodes of {k}" for k, v in fallback.items())
+            + "; see local_field.fallback in alignment.json and the masks of alignment_field/"]
 
 
 # --------------------------------------------------------------------------- tiles
