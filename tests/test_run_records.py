@@ -102,7 +102,7 @@ def test_interrupted_step_is_recorded_interrupted_and_its_partial_outputs_cleane
     run_pipeline(site, out, only=["tiles"], **QUIET)
     run_pipeline(site, out, only=["degrade"], options={"degrade": {"q": 2.0}}, **QUIET)
 
-    import geosim.prepare.steps as prep
+    import geosim.prepare.tiles as prep  # the tile tasks call prepare.tiles.write_tile
 
     real = prep.write_tile
     calls = {"n": 0}

@@ -150,6 +150,10 @@ def window_to_grid_matrix(matrix_px: np.ndarray, window: Window) -> np.ndarray:
     return k @ m @ np.linalg.inv(k)
 
 
+def _affine_from_3x3(m: np.ndarray) -> Affine:
+    return Affine(m[0, 0], m[0, 1], m[0, 2], m[1, 0], m[1, 1], m[1, 2])
+
+
 def _3x3(a: Affine) -> np.ndarray:
     return np.array([[a.a, a.b, a.c], [a.d, a.e, a.f], [0.0, 0.0, 1.0]])
 

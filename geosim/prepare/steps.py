@@ -382,6 +382,33 @@ def _local_fields(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
     return records
 
 
+def _warp_aligned(site: SiteConfig, run: RunDir, grid: SiteGrid,
+                  warps: dict[str, ComposedWarp], entries: dict[str, dict[str, Any]],
+                  rwin: Window, awin: Window, params: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Write ``aligned/<flight>.tif``: one warp from each original flight onto the aligned
+    grid through its correction (engine tasks). Returns each flight's 3×3 grid-pixel
+    correction matrix."""
+    aligned_transform = grid.uav_window_transform(awin)
+    g3 = al._3x3(grid.uav_transform)
+    m_grids: dict[str, np.ndarray] = {}
+    tasks = []
+    for f in site.flights:
+        if site.anchor == "satellite":
+            m_grid = np.vstack([np.array(entries[f.id]["matrix_grid_px"]), [0.0, 0.0, 1.0]])
+        else:
+            m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
+        m_grids[f.id] = m_grid
+        # C⁻¹ in map coordinates: aligned frame → the flight's stated frame
+        c_inv = al._affine_from_3x3(g3 @ m_grid @ np.linalg.inv(g3))
+        tasks.append(WarpRasterTask(
+            warps[f.id].with_correction(c_inv), str(run.aligned(f.id)),
+            tuple(aligned_transform)[:6], (int(awin.height), int(awin.width)), BLOCK_PX,
+            provenance_tags("align", {**params, "resampled": "once, from the original flight"},
+                            [f.image], base_dir=run.root), f.id))
+    parallel_map(warp_raster_task, tasks)
+    return m_grids
+
+
 def run_align(site: SiteConfig, out: RunPath) -> StepResult:
     """Register every flight to the reference and resample it onto the aligned grid.
 
@@ -449,23 +476,7 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
     else:
         anchor = _identity_anchor(center_m)
     aligned_transform = grid.uav_window_transform(awin)
-    m_grids = {}
-    g3 = al._3x3(grid.uav_transform)
-    tasks = []
-    for f in site.flights:
-        if site.anchor == "satellite":
-            m_grid = np.vstack([np.array(entries[f.id]["matrix_grid_px"]), [0.0, 0.0, 1.0]])
-        else:
-            m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
-        m_grids[f.id] = m_grid
-        # C⁻¹ in map coordinates: aligned frame → the flight's stated frame
-        c_inv = al._affine_from_3x3(g3 @ m_grid @ np.linalg.inv(g3))
-        tasks.append(WarpRasterTask(
-            warps[f.id].with_correction(c_inv), str(run.aligned(f.id)),
-            tuple(aligned_transform)[:6], (int(awin.height), int(awin.width)), BLOCK_PX,
-            provenance_tags("align", {**params, "resampled": "once, from the original flight"},
-                            [f.image], base_dir=run.root), f.id))
-    parallel_map(warp_raster_task, tasks)
+    m_grids = _warp_aligned(site, run, grid, warps, entries, rwin, awin, params)
     if p.align_model == "local":
         params["align_model"] = "local"
         # the local field is still applied from flights on the site grid (see
