@@ -46,6 +46,7 @@ from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterE
 from geosim.io.atomic import write_json
 from geosim.io.paths import relative_if_inside
 from geosim.io.raster import (
+    acquisition_tags,
     image_band_indexes,
     open_raster,
     provenance_tags,
@@ -430,6 +431,7 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
               "model": "I_sat = (I_uav conv PSF_airy(Q)) downsampled by phi with "
                        "cv2 INTER_CUBIC; symmetric boundary; no-data filled by pull-push"}
     counts: dict[str, int] = {fid: 0 for fid in site.flight_ids}
+    acquired = {f.id: f.acquired for f in site.flights}
     start = time.perf_counter()
     tasks = [DegradeTileTask(str(src), str(out / "degraded" / fid / src.name), q, p.phi,
                              method, obscuration, p.uav_gsd_m, {
@@ -437,7 +439,8 @@ def run_degrade(site: SiteConfig, out_dir: str | Path, q: float | None = None, *
                                  "GEOSIM_Q": f"{q:.6g}", "GEOSIM_METHOD": method,
                                  "GEOSIM_UAV_GSD_M": f"{p.uav_gsd_m:g}",
                                  "GEOSIM_SAT_GSD_M": f"{p.sat_gsd_m:g}",
-                                 "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem})
+                                 "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem,
+                                 **acquisition_tags(acquired[fid])})
              for fid, src in jobs]
     parallel_map(degrade_tile_task, tasks)
     for fid, _src in jobs:

@@ -177,12 +177,22 @@ def coverage_task(task: CoverageTask) -> list[float]:
 
 
 def index_records(selected: Sequence[tuple[TileSpec, Mapping[str, float]]], crs_name: str,
-                  tile_px: int) -> list[dict[str, Any]]:
-    """Rows of ``tiles/index.geojson`` (geometry added by the caller)."""
+                  tile_px: int, *, reference: str | None = None) -> list[dict[str, Any]]:
+    """Rows of ``tiles/index.geojson`` (geometry added by the caller).
+
+    ``location`` is the path of the tile's file, relative to the index's folder, as
+    ``gdaltindex`` writes it (so GDAL's GTI driver, MapServer and QGIS can open the tiles
+    from the index): the ``reference`` flight's file when it covers the tile, else the first
+    flight that does; ``location_<flight>`` gives every flight's file ("" where absent).
+    """
     rows = []
     for t, cov in selected:
         minx, miny, maxx, maxy = t.bounds()
+        have = [f for f, v in cov.items() if v > 0]
+        first = reference if reference in have else (have[0] if have else None)
         rows.append({
+            "location": f"{first}/{t.id}.tif" if first else "",
+            **{f"location_{f}": (f"{f}/{t.id}.tif" if f in have else "") for f in cov},
             "tile_id": t.id, "row": t.row, "col": t.col, "tile_px": tile_px,
             "minx": minx, "miny": miny, "maxx": maxx, "maxy": maxy, "crs": crs_name,
             "flights": ",".join(f for f, v in cov.items() if v > 0),
