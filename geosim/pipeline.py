@@ -58,6 +58,8 @@ STEPS: tuple[Step, ...] = (
          description="degrade tiles to the 0.5 m satellite grid"),
     Step("diagnose", "geosim.diagnose.steps", "run_diagnose", needs_satellite=True,
          description="locate and explain the simulation–satellite mismatch"),
+    Step("deliver", "geosim.deliver.steps", "run_deliver",
+         description="VRT mosaics, STAC catalogue, YOLO datasets, QGIS project"),
 )
 STEP_NAMES: tuple[str, ...] = tuple(s.name for s in STEPS)
 
