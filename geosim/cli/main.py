@@ -31,6 +31,8 @@ SUBCOMMANDS: list[tuple[str, str]] = [
     ("geosim.cli.degrade", "calibrate"),
     ("geosim.cli.augment", "augment"),
     ("geosim.cli.diagnose", "diagnose"),
+    ("geosim.cli.overlay", "deliver"),
+    ("geosim.cli.overlay", "overlay_check"),
 ]
 
 
