@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,8 +59,11 @@ def _srs(wkt: str) -> str:
     crs = ProjCRS.from_wkt(wkt)
     auth = crs.to_authority() or ("", "")
     authid = f"{auth[0]}:{auth[1]}" if auth[0] else ""
+    with warnings.catch_warnings():   # the PROJ string is informative; QGIS reads the WKT
+        warnings.simplefilter("ignore", UserWarning)
+        proj4 = crs.to_proj4() or ""
     return (f"<spatialrefsys><wkt>{escape(crs.to_wkt())}</wkt>"
-            f"<proj4>{escape(crs.to_proj4() or '')}</proj4>"
+            f"<proj4>{escape(proj4)}</proj4>"
             f"<authid>{escape(authid)}</authid>"
             f"<description>{escape(crs.name)}</description>"
             f"<geographicflag>{'true' if crs.is_geographic else 'false'}</geographicflag>"
@@ -187,6 +191,8 @@ def project_xml(title: str, crs_wkt: str, extent: tuple[float, float, float, flo
         "<layerorder>" + "".join(f"<layer id={quoteattr(ly.id)}/>" for ly in layers)
         + "</layerorder>\n"
         "<properties><Paths><Absolute type=\"bool\">false</Absolute></Paths>"
+        # QGIS reads <projectCrs> only when this (legacy) flag is set
+        "<SpatialRefSys><ProjectionsEnabled type=\"int\">1</ProjectionsEnabled></SpatialRefSys>"
         "<Measurement><DistanceUnits type=\"QString\">meters</DistanceUnits>"
         "<AreaUnits type=\"QString\">m2</AreaUnits></Measurement></properties>\n"
         "</qgis>\n")
