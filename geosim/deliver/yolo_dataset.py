@@ -129,5 +129,29 @@ def write_yolo_dataset(root: Path, items: Sequence[tuple[str, str, Path, Path]],
     return YoloDataset(root, counts, split)
 
 
+def write_split_lists(root: Path, images_by_tile: dict[str, list[str]], names: Sequence[str],
+                      *, val_fraction: float, seed: int, note: str = "") -> dict[str, int]:
+    """Split a flat ``images/`` + ``labels/`` folder by tile with list files and a data.yaml.
+
+    Writes ``root/train.txt`` and ``root/val.txt`` (one ``./images/...`` path per line,
+    which trainers resolve from the list's folder) and ``root/data.yaml`` pointing at them.
+
+    Parameters
+    ----------
+    images_by_tile
+        ``{tile_id: [image path relative to root]}``: all images made from a tile go to
+        the same split.
+    """
+    split = split_tiles(images_by_tile, val_fraction=val_fraction, seed=seed)
+    lists: dict[str, list[str]] = {s: [] for s in SPLITS}
+    for tile, paths in sorted(images_by_tile.items()):
+        lists[split[tile]] += [f"./{p}" for p in paths]
+    for s in SPLITS:
+        write_text(root / f"{s}.txt", "".join(f"{p}\n" for p in sorted(lists[s])))
+    write_text(root / "data.yaml", data_yaml(names, train="train.txt", val="val.txt",
+                                             note=note))
+    return {s: len(v) for s, v in lists.items()}
+
+
 __all__ = ["SPLITS", "YoloDataset", "data_yaml", "label_path_for", "split_tiles",
-           "write_yolo_dataset"]
+           "write_split_lists", "write_yolo_dataset"]
