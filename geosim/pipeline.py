@@ -23,6 +23,7 @@ from geosim.config import SiteConfig
 from geosim.errors import ConfigError
 from geosim.io.atomic import write_json
 from geosim.io.raster import sha256_file
+from geosim.log import info as log_info
 from geosim.validate import preflight
 
 
@@ -96,7 +97,7 @@ def select_steps(only: Sequence[str] | None = None) -> list[Step]:
 
 
 def run_pipeline(site: SiteConfig, out_dir: str | Path, *, only: Sequence[str] | None = None,
-                 echo: Callable[[str], None] = print) -> dict[str, Any]:
+                 echo: Callable[[str], None] = log_info) -> dict[str, Any]:
     """Run the pipeline steps on a site and write ``out_dir/run.json``.
 
     Parameters
@@ -108,7 +109,7 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path, *, only: Sequence[str] |
     only
         Names of the steps to run (default: all, in order).
     echo
-        Where progress lines go.
+        Where progress lines go (default: INFO messages of the ``geosim`` logger).
 
     Returns
     -------

@@ -256,3 +256,24 @@ def test_qgis_project_opens_with_every_layer_valid(run_dir: Path, tmp_path: Path
         assert by_name[f"flight {flight}"]["temporal"]
     assert by_name["paddocks (cattle per flight)"]["labels"]
     assert png.stat().st_size > 10_000
+
+
+def test_cli_help_quiet_and_verbose(samples_dir: Path, tmp_path: Path) -> None:
+    """-h works everywhere; -q leaves only results on stdout; -v names the loggers."""
+    import tqdm
+
+    original_init = tqdm.tqdm.__init__
+    runner = CliRunner()
+    for args in (["-h"], ["deliver", "-h"], ["overlay-check", "-h"]):
+        res = runner.invoke(cli, args)
+        assert res.exit_code == 0 and "Usage:" in res.output
+    site = str(samples_dir / "site.toml")
+    out = str(tmp_path / "run")
+    quiet = runner.invoke(cli, ["-q", "run", site, "--out", out, "--only", "grid"])
+    assert quiet.exit_code == 0, quiet.output
+    assert "[1/1]" not in quiet.stderr and "reproject" not in quiet.stderr
+    assert "geosim 0.1.0: ok" in quiet.stdout
+    loud = runner.invoke(cli, ["-v", "run", site, "--out", out, "--only", "footprints"])
+    assert loud.exit_code == 0, loud.output
+    assert "INFO geosim: [1/1] footprints" in loud.stderr
+    assert tqdm.tqdm.__init__ is original_init          # -q's switch is undone afterwards

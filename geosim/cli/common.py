@@ -39,7 +39,6 @@ def run_steps(site_file: Path, out: Path, steps: Sequence[str] | None, *,
     site = load_site(site_file)
     if anchor is not None:
         site = dataclasses.replace(site, anchor=anchor)
-    record = run_pipeline(site, out, only=steps or None,
-                          echo=lambda s: click.echo(s, err=True))
+    record = run_pipeline(site, out, only=steps or None)
     click.echo(format_summary(record))
     return record
