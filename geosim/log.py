@@ -63,11 +63,11 @@ def silence_progress() -> Callable[[], None]:
     """Turn every tqdm progress bar off (the steps create theirs with ``disable=None``)."""
     import tqdm
 
-    original = tqdm.tqdm.__init__
+    original = tqdm.tqdm.__dict__["__init__"]   # the descriptor itself, restored as it was
 
     def init(self, *args, **kwargs):  # type: ignore[no-untyped-def]
         kwargs["disable"] = True
-        original(self, *args, **kwargs)
+        original.__get__(self, type(self))(*args, **kwargs)
 
     tqdm.tqdm.__init__ = init  # type: ignore[method-assign]
 

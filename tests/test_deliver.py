@@ -262,7 +262,7 @@ def test_cli_help_quiet_and_verbose(samples_dir: Path, tmp_path: Path) -> None:
     """-h works everywhere; -q leaves only results on stdout; -v names the loggers."""
     import tqdm
 
-    original_init = tqdm.tqdm.__init__
+    original_init = tqdm.tqdm.__dict__["__init__"]
     runner = CliRunner()
     for args in (["-h"], ["deliver", "-h"], ["overlay-check", "-h"]):
         res = runner.invoke(cli, args)
@@ -276,4 +276,4 @@ def test_cli_help_quiet_and_verbose(samples_dir: Path, tmp_path: Path) -> None:
     loud = runner.invoke(cli, ["-v", "run", site, "--out", out, "--only", "footprints"])
     assert loud.exit_code == 0, loud.output
     assert "INFO geosim: [1/1] footprints" in loud.stderr
-    assert tqdm.tqdm.__init__ is original_init          # -q's switch is undone afterwards
+    assert tqdm.tqdm.__dict__["__init__"] is original_init   # -q is undone afterwards
