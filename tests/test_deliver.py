@@ -277,3 +277,24 @@ def test_cli_help_quiet_and_verbose(samples_dir: Path, tmp_path: Path) -> None:
     assert loud.exit_code == 0, loud.output
     assert "INFO geosim: [1/1] footprints" in loud.stderr
     assert tqdm.tqdm.__dict__["__init__"] is original_init   # -q is undone afterwards
+
+
+def test_acquired_is_a_datetime_field_in_every_geopackage(run_dir: Path) -> None:
+    import pyogrio
+
+    seen = 0
+    for gpkg in sorted(run_dir.rglob("*.gpkg")):
+        for layer, _ in pyogrio.list_layers(gpkg):
+            info = pyogrio.read_info(gpkg, layer=layer)
+            fields = dict(zip(info["fields"], info["dtypes"], strict=True))
+            if "acquired" in fields:
+                assert fields["acquired"].startswith("datetime64"), (gpkg, layer, fields)
+                seen += 1
+    assert seen >= 3        # cattle, cattle_centres, footprints
+    cattle = gpd.read_file(run_dir / "labels" / "cattle.gpkg", layer="cattle")
+    pa3 = cattle.loc[cattle["flight"] == "PA3", "acquired"].iloc[0]
+    assert pa3.isoformat() == "2021-07-15T05:00:00+00:00"     # 15:00 at +10:00, in UTC
+    if shutil.which("ogrinfo"):
+        out = subprocess.run(["ogrinfo", "-so", str(run_dir / "footprints.gpkg"),
+                              "footprints"], capture_output=True, text=True, check=True)
+        assert "acquired: DateTime" in out.stdout
