@@ -43,7 +43,8 @@ def typed_times(gdf: gpd.GeoDataFrame) -> gpd.GeoDataFrame:
     GeoPackage stores DateTime as UTC (``...Z``); QGIS's temporal controller and
     ``WHERE acquired > ...`` then work on the field. Empty values stay empty.
     """
-    cols = [c for c in TIME_COLUMNS if c in gdf.columns and gdf[c].dtype == object]
+    cols = [c for c in TIME_COLUMNS if c in gdf.columns
+            and not pd.api.types.is_datetime64_any_dtype(gdf[c])]
     if not cols:
         return gdf
     out = gdf.copy()
