@@ -298,3 +298,15 @@ def test_acquired_is_a_datetime_field_in_every_geopackage(run_dir: Path) -> None
         out = subprocess.run(["ogrinfo", "-so", str(run_dir / "footprints.gpkg"),
                               "footprints"], capture_output=True, text=True, check=True)
         assert "acquired: DateTime" in out.stdout
+
+
+def test_diagnosis_reports_embed_their_figures(run_dir: Path) -> None:
+    import re
+
+    reports = sorted((run_dir / "diagnosis").glob("*/report.md"))
+    assert reports
+    for report in reports:
+        links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report.read_text())
+        assert len(links) == 3, report
+        for link in links:
+            assert (report.parent / link).is_file(), (report, link)
