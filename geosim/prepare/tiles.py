@@ -68,9 +68,27 @@ def iter_tiles(shape: tuple[int, int], aligned_transform: Affine, tile_px: int
                            tile_transform(aligned_transform, r, c, tile_px))
 
 
+@contextlib.contextmanager
+def _reads_of(path: str | os.PathLike[str]) -> Iterator[None]:
+    """Name ``path`` in a read failure: GDAL's message for a boundless (VRT) read of a
+    damaged COG names only the block, not the file."""
+    from rasterio.errors import RasterioIOError
+
+    from geosim.errors import RasterError
+    from geosim.io.raster import read_failure
+
+    try:
+        yield
+    except RasterioIOError as exc:
+        failure = read_failure(exc)
+        if failure is None:
+            raise
+        raise RasterError(f"{path}: {failure}") from exc
+
+
 def window_coverage(path: str | os.PathLike[str], window: Window) -> float:
     """Fraction of ``window`` (may extend past the raster) that is valid data."""
-    with rasterio.open(path) as ds:
+    with _reads_of(path), rasterio.open(path) as ds:
         m = ds.read_masks(1, window=window, boundless=True)
     return float(np.count_nonzero(m)) / m.size
 
@@ -109,7 +127,8 @@ def write_tile(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str
     from geosim.prepare.reproject import warp_threads
 
     threads = str(warp_threads())
-    with rasterio.Env(GDAL_NUM_THREADS=threads), rasterio.open(src_path) as src:
+    with _reads_of(src_path), rasterio.Env(GDAL_NUM_THREADS=threads), \
+            rasterio.open(src_path) as src:
         img = src.read(window=tile.window, boundless=True, fill_value=0)
         mask = src.read_masks(1, window=tile.window, boundless=True)
         descriptions = [d or f"band {i}" for i, d in enumerate(src.descriptions, 1)]
