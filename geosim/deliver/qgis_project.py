@@ -17,7 +17,7 @@ import datetime as dt
 import logging
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import escape, quoteattr
 
@@ -48,7 +48,6 @@ class Layer:
     geometry: str = ""           # vector: Point / Polygon
     time_range: tuple[dt.datetime, dt.datetime] | None = None
     labels: str = ""             # labeling XML (vector)
-    extra: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.id.startswith("geosim_layer_"):
