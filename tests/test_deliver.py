@@ -51,12 +51,12 @@ def test_every_raster_is_a_cog_with_overviews(run_dir: Path) -> None:
                 assert ds.overviews(1), f"{tif}: {ds.width}×{ds.height} px without overviews"
                 # the mask has overviews too (GDAL reads masked overviews)
                 assert ds.dataset_mask(out_shape=(ds.height // 4, ds.width // 4)).any()
-    assert big >= 6  # grid/<flight>.tif and aligned/<flight>.tif
+    assert big >= 3  # at least aligned/<flight>.tif
 
 
 @pytest.mark.skipif(shutil.which("gdalinfo") is None, reason="gdalinfo (gdal-bin) not installed")
 def test_gdalinfo_reports_cog_layout_and_overviews(run_dir: Path) -> None:
-    for tif in (run_dir / "grid" / "PA1.tif", run_dir / "tiles" / "PA2" / "r001_c001.tif"):
+    for tif in (run_dir / "aligned" / "PA1.tif", run_dir / "tiles" / "PA2" / "r001_c001.tif"):
         info = subprocess.run(["gdalinfo", "-json", str(tif)], capture_output=True, text=True,
                               check=True)
         doc = json.loads(info.stdout)
