@@ -42,6 +42,8 @@ from geosim.config import SiteConfig
 from geosim.errors import ConfigError
 from geosim.io.atomic import recording_outputs, to_jsonable, write_json
 from geosim.io.raster import sha256_file
+from geosim.log import get_logger
+from geosim.log import info as log_info
 from geosim.result import StepResult
 from geosim.rundir import RunDir
 from geosim.validate import check_out_dir, preflight
@@ -84,6 +86,8 @@ STEPS: tuple[Step, ...] = (
          description="degrade tiles to the 0.5 m satellite grid"),
     Step("diagnose", "geosim.diagnose.steps", "run_diagnose", needs_satellite=True,
          description="locate and explain the simulation–satellite mismatch"),
+    Step("deliver", "geosim.deliver.steps", "run_deliver",
+         description="VRT mosaics, STAC catalogue, YOLO datasets, QGIS project"),
 )
 STEP_NAMES: tuple[str, ...] = tuple(s.name for s in STEPS)
 #: Steps of commands that work on images rather than a site's run folder (not part of
@@ -134,7 +138,7 @@ def select_steps(only: Sequence[str] | None = None) -> list[Step]:
 def run_pipeline(site: SiteConfig, out_dir: str | Path | RunDir, *,
                  only: Sequence[str] | None = None,
                  options: Mapping[str, Mapping[str, Any]] | None = None,
-                 echo: Callable[[str], None] = print) -> dict[str, Any]:
+                 echo: Callable[[str], None] = log_info) -> dict[str, Any]:
     """Run pipeline steps on a site and keep ``out_dir/run.json`` current.
 
     Parameters
@@ -150,7 +154,8 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path | RunDir, *,
         Keyword options per step name (e.g. ``{"degrade": {"q": 4.34}}``), passed to
         the step function and recorded in its step record.
     echo
-        Where progress lines and warnings go.
+        Where progress lines and warnings go (default: INFO messages of the ``geosim``
+        logger).
 
     Returns
     -------
@@ -194,7 +199,7 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path | RunDir, *,
                 step_record = _run_step(step, site, run, to_jsonable(options.get(step.name, {})),
                                         record, earlier.get(step.name, []))
                 for warning in step_record["warnings"]:
-                    echo(f"      warning: {warning}")
+                    get_logger().warning(f"      warning: {warning}")
                 echo(f"      done in {step_record['seconds']:.1f} s")
     except BaseException as exc:
         _finish(run, record, "failed" if isinstance(exc, Exception) else "interrupted", start)

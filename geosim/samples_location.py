@@ -10,10 +10,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from geosim.log import info as log_info
+
 SOURCE_SAMPLES = Path(__file__).resolve().parents[1] / "data" / "samples"
 
 
-def bundled_site(fallback_dir: Path, *, echo: Callable[[str], None] = print) -> Path:
+def bundled_site(fallback_dir: Path, *, echo: Callable[[str], None] = log_info) -> Path:
     """Path of the bundled sample site's ``site.toml``.
 
     Parameters

@@ -184,6 +184,34 @@ def test_degraded_tiles_with_shipped_config_and_png(run_dir: Path, tmp_path: Pat
     assert float(params[0]["length_scale"]) == pytest.approx(0.1)  # 0.05 m reference → 0.5 m
 
 
+def test_augmented_yolo_dataset_is_split_by_source_tile(run_dir: Path, tmp_path: Path
+                                                        ) -> None:
+    """data.yaml + train/val lists: the trainers' path rules find every label, and the
+    images of one source tile (both flights, every k) are all on one side."""
+    import yaml
+
+    from geosim.deliver.yolo_dataset import label_path_for
+
+    out = tmp_path / "aug"
+    res = _invoke("--pairs", run_dir / "pairs.csv", "--n", 2, "--out", out, "--seed", 3,
+                  "--format", "png")
+    assert res.exit_code == 0, res.output
+    data = yaml.safe_load((out / "data.yaml").read_text())
+    assert data["names"] == {0: "cattle"} and "path" not in data
+    side_of: dict[str, set[str]] = {}
+    n = 0
+    for split in ("train", "val"):
+        for line in (out / data[split]).read_text().splitlines():
+            assert line.startswith("./images/")
+            img = out / line[2:]            # './' lines resolve from the list's folder
+            assert img.is_file() and Path(label_path_for(str(img))).is_file()
+            side_of.setdefault(img.name[:9], set()).add(split)   # source tile id
+            n += 1
+    assert n == len(list((out / "images").glob("*.png"))) == 8
+    assert all(len(s) == 1 for s in side_of.values()) and len(side_of) == 2
+    assert {next(iter(s)) for s in side_of.values()} == {"train", "val"}
+
+
 def test_bad_inputs_give_one_line_errors(run_dir: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     res = runner.invoke(cli, ["augment", "--pairs", str(tmp_path / "nope.csv"),

@@ -161,7 +161,8 @@ def test_cattle_land_on_their_truth_boxes(run):
             assert (r.width_m, r.height_m) == pytest.approx((w, h), abs=1e-4), name
             assert r.flight == flight
     assert bool(cattle["calf"].below_sat_pixel) and not bool(cattle["a"].below_sat_pixel)
-    assert cattle["a"].acquired == WHEN1.isoformat()
+    # a DateTime field in the GeoPackage (UTC, as the spec asks): the same instant
+    assert cattle["a"].acquired.to_pydatetime() == WHEN1
     assert cattle["e"].source_kind == "geojson" and cattle["a"].source_kind == "yolo"
     for name, tiles in EXPECTED_TILES.items():
         assert cattle[name].tile_ids.split(";") == tiles, name

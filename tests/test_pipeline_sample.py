@@ -40,7 +40,7 @@ def test_run_json_records_every_step_and_the_inputs(run_dir: Path, samples_dir: 
     assert record["status"] == "ok"
     assert [k for k, v in record["steps"].items() if v["status"] == "ok"] == [
         "grid", "footprints", "align", "tiles", "pairs", "labels", "calibrate", "degrade",
-        "diagnose"]
+        "diagnose", "deliver"]
     image = samples_dir / "flights" / "PA1.tif"
     assert record["inputs"]["flights.PA1.image"]["sha256"] == \
         hashlib.sha256(image.read_bytes()).hexdigest()

@@ -28,13 +28,13 @@ from typing import Any
 
 import cv2
 import numpy as np
-import rasterio
 from affine import Affine
 
 from geosim.augment.geometry import Boxes
 from geosim.augment.pipeline import AugImage
 from geosim.errors import InputFileError, LabelError, OutputError, RasterError
 from geosim.io.atomic import atomic_path, write_text
+from geosim.io.cog import cog_writer
 from geosim.io.georef import Georef
 from geosim.io.raster import (
     BLOCK_PX,
@@ -248,14 +248,13 @@ def write_image(path: Path, img: AugImage, *, georef: Georef | None,
     }
     if tiled:
         profile.update(blockxsize=BLOCK_PX, blockysize=BLOCK_PX)
-    with atomic_path(path) as tmp, rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
-        with _quiet_georef(), rasterio.open(tmp, "w", **profile) as dst:
-            if desc:
-                for i, d in enumerate(desc, start=1):
-                    dst.set_band_description(i, d)
-            dst.update_tags(**dict(tags))
-            dst.write(arr)
-            dst.write_mask(img.mask.astype(np.uint8) * 255)
+    with _quiet_georef(), cog_writer(path, profile, internal_mask=True) as dst:
+        if desc:
+            for i, d in enumerate(desc, start=1):
+                dst.set_band_description(i, d)
+        dst.update_tags(**dict(tags))
+        dst.write(arr)
+        dst.write_mask(img.mask.astype(np.uint8) * 255)
     return path
 
 

@@ -9,6 +9,7 @@ Output folder layout (``OUT``)::
     OUT/augmented_pairs.csv                         one row per augmented pair (manifest)
     OUT/parameters.csv                              every drawn parameter, one row per pair
     OUT/classes.txt, OUT/augment.json               class names; run summary and configuration
+    OUT/data.yaml, OUT/train.txt, OUT/val.txt       YOLO dataset: image lists split by source tile
 
 ``aug_id`` is ``<pair_id>_k<index>``. Output ``k`` of a pair uses the generator
 ``SeedSequence(seed, spawn_key=(crc32(pair_id), k))``: it does not depend on
@@ -169,18 +170,33 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
     classes_src = RunDir.of(run_dir).classes_txt
     classes = classes_src.read_text() if classes_src.is_file() else "cattle\n"
     write_text(out / "classes.txt", classes)
+    split = _write_split(out, manifest, classes, seed=seed)
     summary: dict[str, Any] = {
         "pairs": len(rows), "outputs_per_pair": n, "augmented_pairs": len(manifest),
         "seed": seed, "resolution": resolution, "format": fmt, **counts,
         "seconds": round(seconds, 3),
         "pairs_per_second": round(len(manifest) / seconds, 3) if seconds > 0 else None,
         "out_dir": str(out), "manifest": str(manifest_path), "parameters": str(params_path),
+        "split": split,
     }
     write_json(out / "augment.json", {**summary, "pairs_csv": str(pairs_csv),
                                       "config": pipeline.to_dict()})
     # The manifest is written last: its presence marks a complete run.
     write_csv(manifest_path, MANIFEST_COLUMNS, manifest)
     return summary
+
+
+def _write_split(out: Path, manifest: list[dict[str, Any]], classes: str, *, seed: int
+                 ) -> dict[str, int]:
+    """data.yaml + train.txt/val.txt, split by source tile (both images of a pair, all k)."""
+    from geosim.deliver.yolo_dataset import write_split_lists
+
+    by_tile: dict[str, list[str]] = {}
+    for m in manifest:
+        by_tile.setdefault(str(m["tile_id"]), []).extend([m["path_a"], m["path_b"]])
+    names = [n.strip() for n in classes.splitlines() if n.strip()]
+    return write_split_lists(out, by_tile, names, val_fraction=0.2, seed=seed,
+                             note="geosim augment: split by source tile (val_fraction=0.2)")
 
 
 def _write_outputs(out: Path, aug_id: str, row: PairRow, k: int, res: AugmentResult,

@@ -57,7 +57,6 @@ def run_steps(site_file: Path, out: Path, steps: Sequence[str] | None, *,
         raise ConfigError(f"{site_file}: site {site.name!r} has no [satellite] scene; "
                           f"'geosim {' '.join(steps or ())}' needs one (add a [satellite] "
                           "table with the image path)")
-    record = run_pipeline(site, out, only=steps or None, options=options,
-                          echo=lambda s: click.echo(s, err=True))
+    record = run_pipeline(site, out, only=steps or None, options=options)
     click.echo(format_summary(record))
     return record

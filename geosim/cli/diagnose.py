@@ -50,8 +50,7 @@ def diagnose(site_file: Path | None, uav: tuple[Path, ...], satellite: Path | No
         site = site_from_images(list(uav), satellite, uav_gsd_m=uav_gsd_m, sat_gsd_m=sat_gsd_m,
                                 tile_px=max(1, round(sat_gsd_m / uav_gsd_m)) * 500)
         record = run_pipeline(site, out, only=["diagnose_images"],
-                              options={"diagnose_images": {"seed": seed}},
-                              echo=lambda s: click.echo(s, err=True))
+                              options={"diagnose_images": {"seed": seed}})
         click.echo(format_summary(record))
         summary = record["steps"]["diagnose_images"]["summary"]
     flights = summary.get("flights", {})

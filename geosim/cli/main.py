@@ -30,6 +30,8 @@ SUBCOMMANDS: list[tuple[str, str]] = [
     ("geosim.cli.degrade", "calibrate"),
     ("geosim.cli.augment", "augment"),
     ("geosim.cli.diagnose", "diagnose"),
+    ("geosim.cli.overlay", "deliver"),
+    ("geosim.cli.overlay", "overlay_check"),
 ]
 
 
@@ -59,15 +61,21 @@ class GeosimGroup(click.Group):
             sys.exit(130)
 
 
-@click.group(cls=GeosimGroup)
+@click.group(cls=GeosimGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="geosim")
 @click.option("--debug", is_flag=True, help="Show full tracebacks instead of one-line errors.")
+@click.option("-v", "--verbose", count=True, help="More messages (debug level, logger names).")
+@click.option("-q", "--quiet", is_flag=True,
+              help="Only warnings and errors on stderr; no progress bars.")
 @click.pass_context
-def cli(ctx: click.Context, debug: bool) -> None:
+def cli(ctx: click.Context, debug: bool, verbose: int, quiet: bool) -> None:
     """geosim: UAV surveys of cattle paddocks to aligned, labelled patch pairs and
     calibrated 0.5 m satellite simulations, in map coordinates."""
+    from geosim.log import configure
+
     ctx.ensure_object(dict)
     ctx.obj["debug"] = debug
+    ctx.call_on_close(configure(verbose=verbose, quiet=quiet))
 
 
 def _register(group: click.Group, entries: list[tuple[str, str]]) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from geosim.cli.common import ANCHOR_OPTION, OUT_OPTION, SITE_ARG, run_steps
+from geosim.log import info as log_info
 from geosim.pipeline import STEP_NAMES
 from geosim.rundir import RunDir
 from geosim.samples_location import bundled_site
@@ -34,9 +35,8 @@ def run(site_file: Path, out: Path, only: tuple[str, ...], anchor: str | None) -
 def demo(out: Path, only: tuple[str, ...], anchor: str | None) -> None:
     """Run the whole pipeline on the bundled sample site."""
     # beside --out, not in it: a run folder never holds its own inputs
-    site_path = bundled_site(out.with_name(f"{out.name}_sample_site"),
-                             echo=lambda s: click.echo(s, err=True))
-    click.echo(f"sample site: {site_path}", err=True)
+    site_path = bundled_site(out.with_name(f"{out.name}_sample_site"))
+    log_info(f"sample site: {site_path}")
     run_steps(site_path, out, only, anchor=anchor)
     click.echo(f"outputs in {out}/ (run.json records inputs, parameters and timings)")
     comparison = RunDir(out).diagnosis_dir / "truth_comparison.txt"

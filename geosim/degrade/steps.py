@@ -45,6 +45,7 @@ from geosim.engine import parallel_map
 from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
 from geosim.io.atomic import write_json
 from geosim.io.raster import (
+    acquisition_tags,
     image_band_indexes,
     open_raster,
     provenance_tags,
@@ -419,6 +420,7 @@ def run_degrade(site: SiteConfig, out: RunPath, q: float | None = None, *,
               "model": "I_sat = (I_uav conv PSF_airy(Q)) downsampled by phi with "
                        "cv2 INTER_CUBIC; symmetric boundary; no-data filled by pull-push"}
     counts: dict[str, int] = {fid: 0 for fid in site.flight_ids}
+    acquired = {f.id: f.acquired for f in site.flights}
     start = time.perf_counter()
     tasks = []
     outputs = []
@@ -427,7 +429,8 @@ def run_degrade(site: SiteConfig, out: RunPath, q: float | None = None, *,
         tags = {**provenance_tags("degrade", params, [src], base_dir=run.root),
                 "GEOSIM_Q": f"{q:.6g}", "GEOSIM_METHOD": method,
                 "GEOSIM_UAV_GSD_M": f"{p.uav_gsd_m:g}", "GEOSIM_SAT_GSD_M": f"{p.sat_gsd_m:g}",
-                "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem}
+                "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem,
+                **acquisition_tags(acquired[fid])}
         tasks.append(DegradeTileTask(str(src), str(dst), q, p.phi, method, obscuration,
                                      p.uav_gsd_m, tags))
         outputs.append(run.rel(dst))

@@ -224,6 +224,9 @@ def _markdown(s: dict[str, Any]) -> str:
     lines.append("\nMaps: `map_residual_energy.tif`, `map_blur_ratio.tif`, `map_gain.tif`, "
                  "`map_offset.tif`; plots: `transfer_function.png`, `noise_vs_brightness.png`, "
                  "`mismatch_maps.png`.")
+    lines.append("\n## Figures\n")   # embedded, so the report reads on its own
+    lines += [f"![{name}]({name}.png)\n" for name in
+              ("mismatch_maps", "transfer_function", "noise_vs_brightness")]
     return "\n".join(lines) + "\n"
 
 

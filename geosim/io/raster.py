@@ -1,12 +1,14 @@
 """Reading and writing GeoTIFFs with geosim's conventions (docs/outputs.md).
 
-Outputs are tiled, compressed GeoTIFFs with CRS, transform, nodata and/or an
-internal mask, band descriptions and provenance tags, written atomically.
+Outputs are Cloud-Optimized GeoTIFFs (internal overviews), tiled and compressed, with
+CRS, transform, nodata and/or an internal mask, band descriptions and provenance tags,
+written atomically.
 """
 
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 import hashlib
 import json
 import os
@@ -24,7 +26,7 @@ from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
 from geosim.errors import InputFileError, RasterError
-from geosim.io.atomic import atomic_path
+from geosim.io.cog import cog_writer
 from geosim.io.paths import relative_if_inside
 
 BLOCK_PX = 256
@@ -210,6 +212,18 @@ def provenance_tags(step: str, params: Mapping[str, Any] | None = None,
     }
 
 
+def acquisition_tags(acquired: dt.datetime | None) -> dict[str, str]:
+    """GeoTIFF tags with the acquisition time of the imagery (empty when unknown).
+
+    ``GEOSIM_ACQUIRED`` is ISO 8601 with its UTC offset; ``TIFFTAG_DATETIME`` is the
+    baseline TIFF tag (``YYYY:MM:DD HH:MM:SS``, local time of the stated offset).
+    """
+    if acquired is None:
+        return {}
+    return {"GEOSIM_ACQUIRED": acquired.isoformat(),
+            "TIFFTAG_DATETIME": acquired.strftime("%Y:%m:%d %H:%M:%S")}
+
+
 def _source_name(source: str | os.PathLike[str], base_dir: str | os.PathLike[str] | None
                  ) -> str:
     """Relative to ``base_dir`` when inside it; otherwise absolute (when it can be resolved)."""
@@ -226,25 +240,24 @@ def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, cou
                    tags: Mapping[str, str] | None = None, internal_mask: bool = False,
                    creation_options: Mapping[str, str] | None = None,
                    ) -> Iterator[rasterio.io.DatasetWriter]:
-    """Open a GeoTIFF for windowed writing under a temporary name; rename on success.
+    """Open a GeoTIFF for windowed writing; on success it is renamed into place as a COG.
 
-    Use this when the raster is written window by window. ``internal_mask=True``
+    Use this when the raster is written window by window: the windows go to a scratch
+    GeoTIFF that :func:`geosim.io.cog.cog_writer` copies once into a Cloud-Optimized
+    GeoTIFF with internal overviews (masks, tags and descriptions kept). ``internal_mask=True``
     adds a GDAL internal mask band (write it with ``dst.write_mask``).
     ``creation_options`` are extra GTiff options (e.g. ``ZLEVEL``, ``NUM_THREADS``).
     """
     profile = geotiff_profile(width=width, height=height, count=count, dtype=dtype, crs=crs,
                               transform=transform, nodata=nodata)
     profile.update(creation_options or {})
-    with atomic_path(path) as tmp:
-        env = (rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True) if internal_mask
-               else contextlib.nullcontext())
-        with env, rasterio.open(tmp, "w", **profile) as dst:
-            if band_descriptions is not None:
-                for i, desc in enumerate(band_descriptions, start=1):
-                    dst.set_band_description(i, desc)
-            if tags:
-                dst.update_tags(**tags)
-            yield dst
+    with cog_writer(path, profile, internal_mask=internal_mask) as dst:
+        if band_descriptions is not None:
+            for i, desc in enumerate(band_descriptions, start=1):
+                dst.set_band_description(i, desc)
+        if tags:
+            dst.update_tags(**tags)
+        yield dst
 
 
 def write_geotiff(path: str | os.PathLike[str], array: np.ndarray, *, transform: Affine,

@@ -359,8 +359,8 @@ def run_labels(site: SiteConfig, out: RunPath, *,
             (stage / rel).write_text(text)
         write_geojson(cattle, stage / "cattle.geojson")
         write_gpkg(cattle, stage / "cattle.gpkg", layer="cattle")
-        _centres_layer(cattle).to_file(stage / "cattle.gpkg", layer="cattle_centres",
-                                       driver="GPKG", engine="pyogrio")
+        write_gpkg(_centres_layer(cattle), stage / "cattle.gpkg", layer="cattle_centres",
+                   append=True)
 
     total = len(cattle)
     n_yolo = sum(1 for rel in texts if rel.parts[0] == uav_dir.name)

@@ -24,7 +24,7 @@ from geosim.config import SiteConfig
 from geosim.engine import parallel_map
 from geosim.errors import AlignmentError, ExtentError
 from geosim.io.atomic import write_json, write_text
-from geosim.io.raster import open_raster, provenance_tags
+from geosim.io.raster import acquisition_tags, open_raster, provenance_tags
 from geosim.io.vector import write_geojson, write_gpkg
 from geosim.prepare import alignment as al
 from geosim.prepare import anchor as anc
@@ -603,13 +603,16 @@ def run_tiles(site: SiteConfig, out: RunPath) -> StepResult:
                           f"{p.phi}) or keep_partial_tiles = true")
     params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles}
     jobs = [(t, fid) for t, cov in selected for fid in apath if cov[fid] > 0]
+    acquired = {f.id: f.acquired for f in site.flights}
     parallel_map(cut_tile_task, [
         CutTileTask(str(apath[fid]), str(run.tile(fid, t.id)), t,
                     {**provenance_tags("tiles", params, [apath[fid]], base_dir=run.root),
-                     "GEOSIM_TILE_ID": t.id}) for t, fid in jobs])
+                     "GEOSIM_TILE_ID": t.id, "GEOSIM_FLIGHT": fid,
+                     **acquisition_tags(acquired[fid])}) for t, fid in jobs])
     outputs: list[Path] = [run.tile(fid, t.id) for t, fid in jobs]
     written = len(outputs)
-    records = index_records(selected, _crs_name(grid.crs), p.tile_px)
+    records = index_records(selected, _crs_name(grid.crs), p.tile_px,
+                            reference=site.reference_flight)
     from shapely.geometry import box
 
     gdf = gpd.GeoDataFrame(records, geometry=[box(r["minx"], r["miny"], r["maxx"], r["maxy"])

@@ -68,9 +68,27 @@ def iter_tiles(shape: tuple[int, int], aligned_transform: Affine, tile_px: int
                            tile_transform(aligned_transform, r, c, tile_px))
 
 
+@contextlib.contextmanager
+def _reads_of(path: str | os.PathLike[str]) -> Iterator[None]:
+    """Name ``path`` in a read failure: GDAL's message for a boundless (VRT) read of a
+    damaged COG names only the block, not the file."""
+    from rasterio.errors import RasterioIOError
+
+    from geosim.errors import RasterError
+    from geosim.io.raster import read_failure
+
+    try:
+        yield
+    except RasterioIOError as exc:
+        failure = read_failure(exc)
+        if failure is None:
+            raise
+        raise RasterError(f"{path}: {failure}") from exc
+
+
 def window_coverage(path: str | os.PathLike[str], window: Window) -> float:
     """Fraction of ``window`` (may extend past the raster) that is valid data."""
-    with rasterio.open(path) as ds:
+    with _reads_of(path), rasterio.open(path) as ds:
         m = ds.read_masks(1, window=window, boundless=True)
     return float(np.count_nonzero(m)) / m.size
 
@@ -109,7 +127,8 @@ def write_tile(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str
     from geosim.prepare.reproject import warp_threads
 
     threads = str(warp_threads())
-    with rasterio.Env(GDAL_NUM_THREADS=threads), rasterio.open(src_path) as src:
+    with _reads_of(src_path), rasterio.Env(GDAL_NUM_THREADS=threads), \
+            rasterio.open(src_path) as src:
         img = src.read(window=tile.window, boundless=True, fill_value=0)
         mask = src.read_masks(1, window=tile.window, boundless=True)
         descriptions = [d or f"band {i}" for i, d in enumerate(src.descriptions, 1)]
@@ -177,12 +196,22 @@ def coverage_task(task: CoverageTask) -> list[float]:
 
 
 def index_records(selected: Sequence[tuple[TileSpec, Mapping[str, float]]], crs_name: str,
-                  tile_px: int) -> list[dict[str, Any]]:
-    """Rows of ``tiles/index.geojson`` (geometry added by the caller)."""
+                  tile_px: int, *, reference: str | None = None) -> list[dict[str, Any]]:
+    """Rows of ``tiles/index.geojson`` (geometry added by the caller).
+
+    ``location`` is the path of the tile's file, relative to the index's folder, as
+    ``gdaltindex`` writes it (so GDAL's GTI driver, MapServer and QGIS can open the tiles
+    from the index): the ``reference`` flight's file when it covers the tile, else the first
+    flight that does; ``location_<flight>`` gives every flight's file ("" where absent).
+    """
     rows = []
     for t, cov in selected:
         minx, miny, maxx, maxy = t.bounds()
+        have = [f for f, v in cov.items() if v > 0]
+        first = reference if reference in have else (have[0] if have else None)
         rows.append({
+            "location": f"{first}/{t.id}.tif" if first else "",
+            **{f"location_{f}": (f"{f}/{t.id}.tif" if f in have else "") for f in cov},
             "tile_id": t.id, "row": t.row, "col": t.col, "tile_px": tile_px,
             "minx": minx, "miny": miny, "maxx": maxx, "maxy": maxy, "crs": crs_name,
             "flights": ",".join(f for f, v in cov.items() if v > 0),
