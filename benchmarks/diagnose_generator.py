@@ -1,0 +1,499 @@
+"""Independent generator of "real" satellite scenes for the diagnosis benchmark.
+
+Nothing here imports geosim: every effect is written again from its physics with
+numpy, scipy.ndimage, OpenCV and Pillow, so that the diagnosis is checked against
+forward models it does not share (no inverse crime). Blur physics acts where it
+really acts, on the fine 0.05 m ground grid before sampling; radiometry, noise and
+compression act on the 0.5 m product.
+
+Chain for one case (fine grid = 0.05 m, product grid = 0.5 m, phi = 10)::
+
+    ground (with moved objects) -> misregistration shift -> atmosphere MTF
+      -> off-nadir elongated Gaussian / motion line-spread -> Airy optics (Q)
+      -> detector box (pitch) -> sampling: bicubic / phi (the paper's), or a render at
+         the native GSD (area) then cubic convolution to the product grid (resampling)
+      -> haze / colour (per-band affine) -> Poisson-Gaussian noise -> whole DN
+      -> JPEG (Pillow)
+
+Frequencies: cycles per fine pixel ``f``; on the product grid ``f * phi``.
+Directions: degrees clockwise from grid north (up), in [0, 180).
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from PIL import Image
+from scipy import ndimage
+
+PHI = 10
+FINE_GSD_M = 0.05
+#: BT.601 luma weights (written here again, not imported)
+LUMA = (0.299, 0.587, 0.114)
+
+#: physical ranges the parameters are drawn from (uniform unless stated); product pixels
+RANGES: dict[str, dict[str, tuple[float, float]]] = {
+    "detector_integration": {"pitch_px": (0.9, 1.6)},
+    "atmospheric_blur": {"f0_cyc_per_px": (0.22, 0.5)},
+    "motion_smear": {"length_px": (1.2, 3.0), "direction_deg": (0.0, 180.0)},
+    "off_nadir_anisotropy": {"sigma_px": (0.5, 1.2), "azimuth_deg": (0.0, 180.0)},
+    "resampling": {"native_pitch_px": (1.3, 1.7)},
+    "haze": {"transmission_blue": (0.72, 0.88), "path_radiance_blue_dn": (8.0, 25.0)},
+    "colour_response": {"gain_dev": (0.08, 0.18)},
+    "sensor_noise": {"gain_dn": (0.05, 0.4), "read_var_dn2": (2.0, 12.0)},
+    "compression": {"quality": (25.0, 75.0)},
+    "misregistration": {"shift_px": (0.25, 0.8)},
+    "scene_change": {"n_objects": (6.0, 14.0)},
+}
+Q_RANGE = (0.8, 4.5)
+#: one effect per family at most (two of one family are not identifiable by name)
+FAMILIES: dict[str, tuple[str, ...]] = {
+    "isotropic_blur": ("detector_integration", "atmospheric_blur"),
+    "anisotropic_blur": ("motion_smear", "off_nadir_anisotropy"),
+    "sampling": ("resampling",),
+    "radiometric": ("haze", "colour_response"),
+    "noise": ("sensor_noise",),
+    "compression": ("compression",),
+    "geometric": ("misregistration",),
+    "scene": ("scene_change",),
+}
+
+
+# ----------------------------------------------------------------------------- sources
+@dataclass
+class Source:
+    """A real image and how it reaches the 0.05 m grid."""
+
+    name: str
+    path: Path
+    gsd_m: float           # as stated in the file
+    note: str = ""
+
+
+def list_sources(realdata: Path, samples: Path | None) -> list[Source]:
+    """Every real image: SJER 2017/2018 tiles, Brazil, Australia, Bali, the sample site."""
+    out: list[Source] = []
+    for year in ("2017", "2018"):
+        for p in sorted((realdata / f"sjer_{year}").glob("SJER_*.tif")):
+            out.append(Source(f"sjer{year}/{p.stem}", p, 0.10, "0.10 m upsampled x2 (soft)"))
+    out.append(Source("brazil", realdata / "brazil_pasture_10cm_epsg3395.tif", 0.10,
+                      "0.10 m upsampled x2 (soft)"))
+    out.append(Source("australia", realdata / "australia_woodland_1p8cm_epsg32753.tif", 0.018,
+                      "1.8 cm used pixel for pixel as 5 cm (scene 2.8x larger)"))
+    out.append(Source("bali", realdata / "bali_farmland_35cm_rgba_epsg32750.tif", 0.3527,
+                      "0.35 m upsampled x7 (content reaches the product Nyquist)"))
+    if samples is not None and (samples / "flights" / "PA1.tif").is_file():
+        out.append(Source("sample/PA1", samples / "flights" / "PA1.tif", 0.05, "native 5 cm"))
+    return [s for s in out if s.path.is_file()]
+
+
+def _read(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        arr = ds.read()
+        nod = ds.nodata
+    img = arr[:3].astype(np.float32)
+    valid = np.ones(img.shape[1:], bool)
+    if arr.shape[0] == 4:
+        valid &= arr[3] > 0
+    if nod is not None:
+        valid &= ~np.all(arr[:3] == nod, axis=0)
+    return img, valid
+
+
+def fine_window(src: Source, rng: np.random.Generator, *, sat_px: int, margin_px: int
+                ) -> np.ndarray:
+    """A random (≥ 98 % valid) window of the source on the 0.05 m grid, (3, n, n) float,
+    n = (sat_px + 2 margin_px) * PHI (smaller sources give what they have)."""
+    img, valid = _read(src.path)
+    scale = 1.0 if src.gsd_m < FINE_GSD_M else src.gsd_m / FINE_GSD_M
+    need_fine = (sat_px + 2 * margin_px) * PHI
+    need_nat = int(np.ceil(need_fine / scale))
+    rows, cols = img.shape[1:]
+    n_nat = min(need_nat, rows, cols)
+    for _ in range(200):
+        r0 = int(rng.integers(0, rows - n_nat + 1))
+        c0 = int(rng.integers(0, cols - n_nat + 1))
+        # a few nodata-valued pixels (SJER: saturated white = its nodata 255) are kept
+        if valid[r0:r0 + n_nat, c0:c0 + n_nat].mean() >= 0.98:
+            break
+    else:
+        raise RuntimeError(f"{src.name}: no fully valid {n_nat} px window")
+    crop = img[:, r0:r0 + n_nat, c0:c0 + n_nat]
+    n_fine = int(n_nat * scale) // PHI * PHI
+    if scale == 1.0:
+        return crop[:, :n_fine, :n_fine].copy()
+    return np.stack([cv2.resize(b, (n_fine, n_fine), interpolation=cv2.INTER_CUBIC)
+                     for b in crop])
+
+
+def synthetic_ground(rng: np.random.Generator, n_fine: int) -> np.ndarray:
+    """A procedural pasture (1/f texture, soil patches, bushes) for tests without real data."""
+    fy = np.fft.fftfreq(n_fine)[:, None]
+    fx = np.fft.fftfreq(n_fine)[None, :]
+    f = np.hypot(fy, fx)
+    f[0, 0] = 1.0
+    amp = 1.0 / f ** 1.4
+    amp[0, 0] = 0.0
+    base = np.real(np.fft.ifft2(amp * np.exp(2j * np.pi * rng.random((n_fine, n_fine)))))
+    base = (base - base.mean()) / base.std()
+    img = np.stack([110 + 25 * base, 120 + 22 * base, 85 + 18 * base]).astype(np.float32)
+    for _ in range(n_fine * n_fine // 40000):
+        r, c = rng.integers(0, n_fine, 2)
+        rad = int(rng.integers(8, 40))
+        col = rng.uniform(30, 200, 3)
+        for b in range(3):
+            cv2.circle(img[b], (int(c), int(r)), rad, float(col[b]), -1)
+    return np.clip(img, 0, 255)
+
+
+# ----------------------------------------------------------------------------- physics
+def _freqs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.fft.fftfreq(n)[:, None], np.fft.fftfreq(n)[None, :]
+
+
+def _filter(img: np.ndarray, mtf: np.ndarray) -> np.ndarray:
+    return np.real(np.fft.ifft2(np.fft.fft2(img, axes=(-2, -1)) * mtf, axes=(-2, -1)))
+
+
+def airy_otf(n: int, q: float) -> np.ndarray:
+    """Incoherent OTF of a circular aperture, cut-off 1/(q PHI) cycles per fine pixel."""
+    fy, fx = _freqs(n)
+    nu = np.clip(np.hypot(fy, fx) * q * PHI, 0.0, 1.0)
+    return (2.0 / np.pi) * (np.arccos(nu) - nu * np.sqrt(1.0 - nu * nu))
+
+
+def atmosphere_mtf(n: int, f0_cyc_per_px: float) -> np.ndarray:
+    """exp(-(f/f0)^(5/3)), f in cycles per product pixel."""
+    fy, fx = _freqs(n)
+    return np.exp(-(np.hypot(fy, fx) * PHI / f0_cyc_per_px) ** (5.0 / 3.0))
+
+
+def _unit(direction_deg: float) -> tuple[float, float]:
+    """(row, col) components of a unit vector clockwise from north (north = -row)."""
+    t = np.radians(direction_deg)
+    return -np.cos(t), np.sin(t)
+
+
+def motion_kernel(length_px: float, direction_deg: float) -> np.ndarray:
+    """Line-spread kernel on the fine grid: a uniform segment of length_px product pixels,
+    drawn by splatting many points bilinearly (sub-pixel ends)."""
+    length = length_px * PHI
+    half = int(np.ceil(length / 2)) + 2
+    k = np.zeros((2 * half + 1, 2 * half + 1))
+    ur, uc = _unit(direction_deg)
+    s = np.linspace(-length / 2, length / 2, int(length * 8) + 1)
+    rr, cc = half + s * ur, half + s * uc
+    r0, c0 = np.floor(rr).astype(int), np.floor(cc).astype(int)
+    dr, dc = rr - r0, cc - c0
+    for orr, occ, w in ((0, 0, (1 - dr) * (1 - dc)), (1, 0, dr * (1 - dc)),
+                        (0, 1, (1 - dr) * dc), (1, 1, dr * dc)):
+        np.add.at(k, (r0 + orr, c0 + occ), w)
+    return k / k.sum()
+
+
+def elongated_gaussian_kernel(sigma_px: float, azimuth_deg: float) -> np.ndarray:
+    """Gaussian of sigma_px product pixels along the azimuth, 0.3 fine px across."""
+    sa, sx = sigma_px * PHI, 0.3
+    half = int(np.ceil(4 * sa)) + 1
+    r, c = np.mgrid[-half:half + 1, -half:half + 1].astype(float)
+    ur, uc = _unit(azimuth_deg)
+    along = r * ur + c * uc
+    across = -r * uc + c * ur
+    k = np.exp(-0.5 * (along / sa) ** 2 - 0.5 * (across / sx) ** 2)
+    return k / k.sum()
+
+
+def convolve(img: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    return np.stack([cv2.filter2D(b.astype(np.float32), -1, kernel.astype(np.float32),
+                                  borderType=cv2.BORDER_REFLECT) for b in img]).astype(float)
+
+
+def detector_box(img: np.ndarray, pitch_px: float) -> np.ndarray:
+    """Pixel-aperture integration: a box pitch_px product pixels wide on the fine grid."""
+    w = pitch_px * PHI
+    n = int(np.floor(w))
+    frac = (w - n) / 2.0
+    k1 = np.ones(n + 2)
+    k1[0] = k1[-1] = frac
+    if frac == 0:
+        k1 = k1[1:-1]
+    k1 /= k1.sum()
+    return convolve(img, np.outer(k1, k1))
+
+
+def sample_bicubic(img: np.ndarray) -> np.ndarray:
+    """The paper's sampling: bicubic (OpenCV) down by PHI."""
+    n = img.shape[-1] // PHI
+    return np.stack([cv2.resize(b.astype(np.float32), (n, n), interpolation=cv2.INTER_CUBIC)
+                     for b in img]).astype(float)
+
+
+def sample_native(img: np.ndarray, native_pitch_px: float) -> np.ndarray:
+    """Render at the native GSD (each native detector averages its area), then cubic
+    convolution (Keys, OpenCV bicubic) to the 0.5 m product grid."""
+    n = img.shape[-1] // PHI
+    n_nat = int(round(n / native_pitch_px))
+    out = []
+    for b in img.astype(np.float32):
+        nat = cv2.resize(b, (n_nat, n_nat), interpolation=cv2.INTER_AREA)
+        out.append(cv2.resize(nat, (n, n), interpolation=cv2.INTER_CUBIC))
+    return np.stack(out).astype(float)
+
+
+def poisson_gaussian(img: np.ndarray, gain_dn: float, read_var_dn2: float,
+                     rng: np.random.Generator) -> np.ndarray:
+    """Shot noise (photon counts s/gain, scaled back) plus Gaussian read noise."""
+    s = np.clip(img, 0, None)
+    shot = rng.poisson(s / gain_dn) * gain_dn
+    return shot + rng.normal(0.0, np.sqrt(read_var_dn2), img.shape)
+
+
+def jpeg_pillow(img: np.ndarray, quality: int) -> np.ndarray:
+    """Pillow JPEG round trip of an RGB 8-bit product (Pillow's default chroma subsampling)."""
+    hwc = np.moveaxis(np.clip(np.rint(img), 0, 255).astype(np.uint8), 0, -1)
+    buf = io.BytesIO()
+    Image.fromarray(hwc, "RGB").save(buf, format="JPEG", quality=int(quality))
+    buf.seek(0)
+    return np.moveaxis(np.asarray(Image.open(buf).convert("RGB"), float), -1, 0)
+
+
+def paste_objects(img: np.ndarray, centres: np.ndarray, horiz: np.ndarray, colours: np.ndarray
+                  ) -> np.ndarray:
+    """Cattle-sized (2.4 m x 1.0 m) ellipses on the fine grid."""
+    out = img.copy()
+    for (r, c), h, col in zip(centres, horiz, colours, strict=True):
+        axes = (24, 10) if h else (10, 24)
+        for b in range(out.shape[0]):
+            cv2.ellipse(out[b], (int(c), int(r)), axes, 0, 0, 360, float(col[b]), -1)
+    return out
+
+
+def luma(img: np.ndarray) -> np.ndarray:
+    return LUMA[0] * img[0] + LUMA[1] * img[1] + LUMA[2] * img[2]
+
+
+# ----------------------------------------------------------------------------- cases
+@dataclass
+class Case:
+    """One benchmark case: UAV image on the fine grid, real scene on the product grid."""
+
+    name: str
+    seed: int
+    source: str
+    q: float
+    truth: dict[str, dict[str, Any]]
+    uav: np.ndarray = field(repr=False)
+    real: np.ndarray = field(repr=False)
+
+    @property
+    def split(self) -> str:
+        return "validation" if self.seed % 2 else "development"
+
+
+def draw_effects(rng: np.random.Generator, n_effects: int) -> dict[str, dict[str, Any]]:
+    """n_effects effects from distinct families with parameters from RANGES."""
+    fams = list(FAMILIES)
+    chosen = rng.choice(len(fams), size=n_effects, replace=False)
+    out: dict[str, dict[str, Any]] = {}
+    for i in chosen:
+        members = FAMILIES[fams[int(i)]]
+        name = members[int(rng.integers(0, len(members)))]
+        r = RANGES[name]
+
+        def u(key: str, r=r) -> float:
+            return float(rng.uniform(*r[key]))
+
+        if name == "haze":
+            tb, lb = u("transmission_blue"), u("path_radiance_blue_dn")
+            out[name] = {"transmission": [tb + 0.5 * (1 - tb), tb + 0.3 * (1 - tb), tb],
+                         "path_radiance_dn": [0.35 * lb, 0.6 * lb, lb]}
+        elif name == "colour_response":
+            d = u("gain_dev")
+            signs = rng.choice([-1.0, 1.0], 3)
+            out[name] = {"gain": [float(1 + s * d * rng.uniform(0.5, 1.0)) for s in signs]}
+            out[name]["gain"][int(rng.integers(0, 3))] = float(1 + signs[0] * d)
+        elif name == "misregistration":
+            m = u("shift_px")
+            a = rng.uniform(0, 2 * np.pi)
+            out[name] = {"shift_px": [float(m * np.cos(a)), float(m * np.sin(a))]}
+        elif name == "compression":
+            out[name] = {"quality": int(round(u("quality")))}
+        elif name == "scene_change":
+            out[name] = {"n_objects": int(round(u("n_objects")))}
+        else:
+            out[name] = {k: u(k) for k in r}
+    return out
+
+
+def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
+           rng: np.random.Generator, *, margin_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """(uav fine image, real product) for the window inside ``margin_px`` product pixels."""
+    n_fine = ground.shape[-1]
+    m = margin_px * PHI
+    uav_ground = ground
+    real_ground = ground
+    if "scene_change" in truth:
+        k = truth["scene_change"]["n_objects"]
+        cols = rng.uniform(20, 60, (k, 1)) * np.array([[1.0, 0.9, 0.8]])
+        lo, hi = m + 40, n_fine - m - 40
+        uav_ground = paste_objects(ground, rng.integers(lo, hi, (k, 2)),
+                                   rng.integers(0, 2, k), cols)
+        real_ground = paste_objects(ground, rng.integers(lo, hi, (k, 2)),
+                                    rng.integers(0, 2, k), cols)
+    img = real_ground.astype(float)
+    if "misregistration" in truth:
+        dc, dr = truth["misregistration"]["shift_px"]   # [column, row] product pixels
+        img = np.stack([ndimage.shift(b, (dr * PHI, dc * PHI), order=3, mode="reflect")
+                        for b in img])
+    mtf = airy_otf(n_fine, q)
+    if "atmospheric_blur" in truth:
+        mtf = mtf * atmosphere_mtf(n_fine, truth["atmospheric_blur"]["f0_cyc_per_px"])
+    img = _filter(img, mtf)       # periodic wrap only touches the margin
+    if "off_nadir_anisotropy" in truth:
+        p = truth["off_nadir_anisotropy"]
+        img = convolve(img, elongated_gaussian_kernel(p["sigma_px"], p["azimuth_deg"]))
+    if "motion_smear" in truth:
+        p = truth["motion_smear"]
+        img = convolve(img, motion_kernel(p["length_px"], p["direction_deg"]))
+    if "detector_integration" in truth:
+        img = detector_box(img, truth["detector_integration"]["pitch_px"])
+    if "resampling" in truth:
+        sat = sample_native(img, truth["resampling"]["native_pitch_px"])
+    else:
+        sat = sample_bicubic(img)
+    if "haze" in truth:
+        p = truth["haze"]
+        sat = (np.asarray(p["transmission"])[:, None, None] * sat
+               + np.asarray(p["path_radiance_dn"])[:, None, None])
+    if "colour_response" in truth:
+        sat = np.asarray(truth["colour_response"]["gain"])[:, None, None] * sat
+    if "sensor_noise" in truth:
+        p = truth["sensor_noise"]
+        sat = poisson_gaussian(sat, p["gain_dn"], p["read_var_dn2"], rng)
+    sat = np.clip(np.rint(sat), 0, 255)
+    if "compression" in truth:
+        sat = jpeg_pillow(sat, truth["compression"]["quality"])
+    sat = sat[:, margin_px:-margin_px, margin_px:-margin_px]
+    uav = uav_ground[:, m:-m, m:-m]
+    return np.clip(np.rint(uav), 0, 255).astype(np.float32), sat
+
+
+def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,
+              control_every: int = 5, base_seed: int = 1000) -> Case:
+    """Case ``i`` (seed base_seed + i): source round robin; every ``control_every``-th a
+    control (the paper's model only); else 1-3 effects."""
+    seed = base_seed + i
+    rng = np.random.default_rng(seed)
+    if sources:
+        src = sources[(i + i // len(sources)) % len(sources)]
+        ground = fine_window(src, rng, sat_px=sat_px, margin_px=margin_px)
+        name = src.name
+        # small sources (SJER 40 m tiles, Australia): the window is what they hold; the
+        # margin the optics needs is mirrored ground
+        win = min(sat_px, ground.shape[-1] // PHI)
+        need = (win + 2 * margin_px) * PHI
+        if need > ground.shape[-1]:
+            m = margin_px * PHI
+            ground = np.pad(ground[:, :win * PHI, :win * PHI], ((0, 0), (m, m), (m, m)),
+                            mode="reflect")
+    else:
+        ground = synthetic_ground(rng, (sat_px + 2 * margin_px) * PHI)
+        name = "synthetic"
+    q = float(rng.uniform(*Q_RANGE))
+    n_eff = 0 if i % control_every == 0 else int(rng.integers(1, 4))
+    truth = draw_effects(rng, n_eff)
+    uav, real = render(ground, q, truth, rng, margin_px=margin_px)
+    return Case(name=f"c{i:02d}", seed=seed, source=name, q=q, truth=truth, uav=uav, real=real)
+
+
+def pick_sources(all_sources: list[Source], n_sjer_each: int = 2) -> list[Source]:
+    """Every image kind, interleaved; a few SJER tiles per year (36 per year exist)."""
+    sjer17 = [s for s in all_sources if s.name.startswith("sjer2017")]
+    sjer18 = [s for s in all_sources if s.name.startswith("sjer2018")]
+    step17 = max(1, len(sjer17) // n_sjer_each)
+    step18 = max(1, len(sjer18) // n_sjer_each)
+    others = [s for s in all_sources if not s.name.startswith("sjer")]
+    return sjer17[::step17][:n_sjer_each] + sjer18[1::step18][:n_sjer_each] + others
+
+
+# ----------------------------------------------------------------------------- scoring
+def _hann(n: int) -> np.ndarray:
+    w = np.hanning(n + 2)[1:-1]
+    return np.outer(w, w)
+
+
+def welch_power(grey: np.ndarray, block: int = 32) -> np.ndarray:
+    w = _hann(block)
+    acc = np.zeros((block, block))
+    k = 0
+    for r0 in range(0, grey.shape[0] - block + 1, block // 2):
+        for c0 in range(0, grey.shape[1] - block + 1, block // 2):
+            b = grey[r0:r0 + block, c0:c0 + block]
+            acc += np.abs(np.fft.fft2((b - b.mean()) * w)) ** 2
+            k += 1
+    return acc / max(k, 1)
+
+
+def spectral_error(sim: np.ndarray, real: np.ndarray, *, block: int = 32, n_radial: int = 12,
+                   n_angular: int = 8) -> float:
+    """RMS over radial x angular bins of log10(P_sim / P_real), luma, Welch 32-px Hann."""
+    ps, pr = welch_power(luma(sim), block), welch_power(luma(real), block)
+    fy, fx = _freqs(block)
+    fy, fx = np.broadcast_arrays(fy, fx)
+    f = np.hypot(fy, fx)
+    ang = np.mod(np.degrees(np.arctan2(fx, -fy)) + 90.0 / n_angular, 180.0)
+    ri = np.digitize(f, np.linspace(1.0 / block, 0.5, n_radial + 1)) - 1
+    ai = np.minimum((ang / (180.0 / n_angular)).astype(int), n_angular - 1)
+    ok = (ri >= 0) & (ri < n_radial)
+    errs = []
+    for a in range(n_angular):
+        for r in range(n_radial):
+            sel = ok & (ai == a) & (ri == r)
+            if sel.any():
+                errs.append(np.log10(max(ps[sel].mean(), 1e-20) / max(pr[sel].mean(), 1e-20)))
+    return float(np.sqrt(np.mean(np.square(errs))))
+
+
+def score(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Exact-name precision/recall, clean controls, spectral targets (rows: truth, claimed,
+    se_base, se_refined)."""
+    tp = sum(len(set(r["truth"]) & set(r["claimed"])) for r in rows)
+    fp = sum(len(set(r["claimed"]) - set(r["truth"])) for r in rows)
+    fn = sum(len(set(r["truth"]) - set(r["claimed"])) for r in rows)
+    controls = [r for r in rows if not r["truth"]]
+    effects = [r for r in rows if r["truth"]]
+    per: dict[str, dict[str, int]] = {}
+    for r in rows:
+        for n in set(r["truth"]) | set(r["claimed"]):
+            d = per.setdefault(n, {"tp": 0, "fp": 0, "fn": 0})
+            d["tp" if n in r["truth"] and n in r["claimed"] else
+              "fp" if n in r["claimed"] else "fn"] += 1
+    fam_of = {m: f for f, ms in FAMILIES.items() for m in ms}
+
+    def fams(names: Any) -> set[str]:
+        return {fam_of.get(n, n) for n in names}
+
+    ftp = sum(len(fams(r["truth"]) & fams(r["claimed"])) for r in rows)
+    ffp = sum(len(fams(r["claimed"]) - fams(r["truth"])) for r in rows)
+    ffn = sum(len(fams(r["truth"]) - fams(r["claimed"])) for r in rows)
+    return {
+        "n_cases": len(rows), "n_controls": len(controls),
+        "precision": tp / (tp + fp) if tp + fp else 1.0,
+        "recall": tp / (tp + fn) if tp + fn else 1.0,
+        "tp": tp, "fp": fp, "fn": fn,
+        "family_precision": ftp / (ftp + ffp) if ftp + ffp else 1.0,
+        "family_recall": ftp / (ftp + ffn) if ftp + ffn else 1.0,
+        "controls_clean": sum(1 for r in controls if not r["claimed"]),
+        "effect_cases": len(effects),
+        "refined_le_half_baseline": sum(1 for r in effects
+                                        if r["se_refined"] <= 0.5 * r["se_base"]),
+        "refined_above_baseline": sum(1 for r in rows if r["se_refined"] > r["se_base"]),
+        "per_effect": per,
+    }
