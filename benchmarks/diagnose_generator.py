@@ -80,6 +80,8 @@ def list_sources(realdata: Path, samples: Path | None) -> list[Source]:
     out: list[Source] = []
     for year in ("2017", "2018"):
         for p in sorted((realdata / f"sjer_{year}").glob("SJER_*.tif")):
+            if min(_shape(p)) < 400:   # edge tiles cut by the survey boundary
+                continue
             out.append(Source(f"sjer{year}/{p.stem}", p, 0.10, "0.10 m upsampled x2 (soft)"))
     out.append(Source("brazil", realdata / "brazil_pasture_10cm_epsg3395.tif", 0.10,
                       "0.10 m upsampled x2 (soft)"))
@@ -90,6 +92,13 @@ def list_sources(realdata: Path, samples: Path | None) -> list[Source]:
     if samples is not None and (samples / "flights" / "PA1.tif").is_file():
         out.append(Source("sample/PA1", samples / "flights" / "PA1.tif", 0.05, "native 5 cm"))
     return [s for s in out if s.path.is_file()]
+
+
+def _shape(path: Path) -> tuple[int, int]:
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        return ds.height, ds.width
 
 
 def _read(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -495,5 +504,6 @@ def score(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "refined_le_half_baseline": sum(1 for r in effects
                                         if r["se_refined"] <= 0.5 * r["se_base"]),
         "refined_above_baseline": sum(1 for r in rows if r["se_refined"] > r["se_base"]),
+        "errors": sum(1 for r in rows if r.get("error")),
         "per_effect": per,
     }

@@ -68,7 +68,14 @@ def run(indices: list[int], sources: list[gen.Source], **case_kw: Any) -> list[d
     for i in indices:
         t0 = time.time()
         case = gen.make_case(i, sources, **case_kw)
-        row = diagnose_case(case)
+        try:
+            row = diagnose_case(case)
+        except Exception as exc:  # a crash is a failure of the tool, recorded as such
+            row = {"case": case.name, "seed": case.seed, "split": case.split,
+                   "source": case.source, "q_true": case.q, "q_base": float("nan"),
+                   "q_refined": float("nan"), "truth": case.truth, "claimed": {},
+                   "error": f"{type(exc).__name__}: {exc}", "se_base": float("nan"),
+                   "se_refined": float("nan")}
         row["seconds_total"] = time.time() - t0
         rows.append(row)
         ok = "ok" if set(row["truth"]) == set(row["claimed"]) else "MISS"

@@ -19,9 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 
 from geosim.diagnose.spectra import cross_spectrum
+from geosim.physics.geometry import fourier_shift
 
 __all__ = ["ShiftEstimate", "estimate_shift", "fourier_shift", "integer_shift"]
 
@@ -67,25 +67,6 @@ def integer_shift(sim: np.ndarray, real: np.ndarray, *, max_shift_px: int = 8) -
     corr = np.where((np.abs(dr) <= max_shift_px) & (np.abs(dc) <= max_shift_px), corr, -np.inf)
     i, j = np.unravel_index(np.argmax(corr), corr.shape)
     return int(dc[0, j]), int(dr[i, 0])
-
-
-def fourier_shift(image: np.ndarray, shift_px: tuple[float, float], *,
-                  pad_px: int = 16) -> np.ndarray:
-    """Move an image (2-D or bands-first) by a sub-pixel (d_col, d_row), reflect-padded."""
-    arr = np.asarray(image, dtype=float)
-    if arr.ndim == 3:
-        return np.stack([fourier_shift(b, shift_px, pad_px=pad_px) for b in arr])
-    dc, dr = shift_px
-    if dc == 0 and dr == 0:
-        return arr.copy()
-    pad = min(pad_px + int(np.ceil(max(abs(dc), abs(dr)))), min(arr.shape) - 1)
-    padded = np.pad(arr, pad, mode="reflect")
-    spec = scipy.fft.fft2(padded)
-    fy = np.fft.fftfreq(padded.shape[0])[:, None]
-    fx = np.fft.fftfreq(padded.shape[1])[None, :]
-    spec *= np.exp(-2j * np.pi * (fx * dc + fy * dr))
-    out = np.real(scipy.fft.ifft2(spec))
-    return out[pad:pad + arr.shape[0], pad:pad + arr.shape[1]]
 
 
 def _phase_fit(sim: np.ndarray, real: np.ndarray, valid: np.ndarray | None, block_px: int,

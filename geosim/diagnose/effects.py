@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from geosim.physics import otf, radiometry
+from geosim.physics.geometry import fourier_shift, step_side
 
 __all__ = [
     "ParamSpec", "Effect", "BlurEffect", "CATALOGUE", "BLUR_EFFECTS", "get_effect",
@@ -276,8 +277,6 @@ class ExposureSeam(Effect):
                    "corrected, relative to the brighter side.")
 
     def apply(self, image, *, rng=None, factor, normal_deg, offset_px, **_):
-        from geosim.diagnose.seam import step_side
-
         img = np.asarray(image, dtype=float)
         side = step_side(img.shape[-2:], normal_deg=normal_deg, offset_px=offset_px)
         return img * np.where(side, factor, 1.0)
@@ -311,8 +310,6 @@ class Misregistration(Effect):
                    "geometry.")
 
     def apply(self, image, *, rng=None, shift_px):
-        from geosim.diagnose.coregister import fourier_shift
-
         return fourier_shift(image, (float(shift_px[0]), float(shift_px[1])))
 
 

@@ -4,6 +4,13 @@ Pure numerics (no files): :func:`diagnose_arrays` takes the real scene on the
 0.5 m grid and a callable giving the paper's model at any Q on the same grid, and
 returns a :class:`Diagnosis` with the JSON-able summary, the three images
 (real, baseline, refined), the mismatch maps and regions, and plot data.
+
+Stages (each a function with a typed result): :func:`_coregister` →
+:func:`_find_compression` → :func:`_changed_regions` → :func:`_spectral_setup` (Q grid,
+Welch blocks, block cross-validation folds) → :func:`~geosim.diagnose.select.select_blur`
+→ :func:`_fit_radiometry` → :func:`~geosim.diagnose.noise.estimate_noise` →
+:func:`_never_worse` (the refined simulation may not fit worse than the baseline) →
+:func:`_claims` and :func:`_summary`.
 """
 
 from __future__ import annotations
@@ -17,21 +24,24 @@ import numpy as np
 from scipy import ndimage
 
 from geosim.diagnose import locate
-from geosim.diagnose.coregister import (
-    estimate_affine,
-    estimate_shift,
-    fourier_shift,
-    warp_by_field,
+from geosim.diagnose.coregister import estimate_affine, estimate_shift
+from geosim.diagnose.effects import BLUR_EFFECTS
+from geosim.diagnose.fit import SpectralData, build_spectral_data, fit_radiometry, fit_transfer
+from geosim.diagnose.model import (
+    Claim,
+    CompressionFit,
+    ForwardModel,
+    RadiometryChoice,
+    Registration,
 )
-from geosim.diagnose.effects import BLUR_EFFECTS, get_effect
-from geosim.diagnose.fit import (
-    build_spectral_data,
-    fit_noise,
-    fit_radiometry,
-    fit_transfer,
-)
+from geosim.diagnose.noise import estimate_noise
 from geosim.diagnose.seam import find_gain_step
-from geosim.diagnose.select import MIN_DELTA_BIC, select_blur, select_radiometry
+from geosim.diagnose.select import (
+    MIN_DELTA_BIC,
+    BlurSelection,
+    select_blur,
+    select_radiometry,
+)
 from geosim.diagnose.spectra import (
     block_origins,
     cross_spectrum,
@@ -39,13 +49,12 @@ from geosim.diagnose.spectra import (
     screen_blocks,
     spectral_error,
 )
-from geosim.physics import otf
+from geosim.physics.geometry import fourier_shift
 from geosim.physics.radiometry import luma
 
 __all__ = ["Diagnosis", "diagnose_arrays", "blockiness", "PHYSICAL_Q"]
 
 PHYSICAL_Q = (0.5, 2.0)
-MIN_NOISE_VAR_DN2 = 0.5
 MIN_SHIFT_PX = 0.1
 #: floor of the residual energy a region must exceed (× ratio threshold), DN²
 MIN_REGION_DN2 = 4.0
@@ -53,6 +62,8 @@ MIN_REGION_DN2 = 4.0
 RADIOMETRY_SIGMA_PX = 2.0
 #: Welch blocks wanted for a stable transfer-function estimate
 MIN_BLOCKS = 16
+#: compression is claimed only below this JPEG quality (the top of the range is its null)
+MAX_CLAIMED_QUALITY = 90
 
 
 @dataclass
@@ -70,26 +81,41 @@ class Diagnosis:
     plots: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass
+class Inputs:
+    """The real scene and the paper's model, bands first, on the 0.5 m grid."""
+
+    real: np.ndarray
+    grey: np.ndarray
+    valid: np.ndarray
+    simulate: Callable[[float], np.ndarray]
+    base: np.ndarray
+    q_base: float
+    block_px: int
+    quantized: bool
+    gsd_m: float
+
+
+@dataclass
+class SpectralSetup:
+    """Q grid of exact simulations, Welch blocks and the block cross-validation folds."""
+
+    q_grid: np.ndarray
+    sims_grey: list[np.ndarray]
+    origins: list[tuple[int, int]]
+    block_px: int
+    full: SpectralData
+    folds: list[tuple[SpectralData, SpectralData]]
+    n_screened: int
+
+
 def _grey(img: np.ndarray) -> np.ndarray:
     return luma(img) if img.ndim == 3 else np.asarray(img, float)
 
 
-#: blur effects whose forward model is not shift-invariant (applied with ``apply``, so that
-#: the refined simulation carries their aliasing, not only their average transfer)
-NON_LSI = ("resampling",)
-
-
-def _blur_apply(img: np.ndarray, effects: dict[str, dict[str, float]]) -> np.ndarray:
-    out = np.asarray(img, float)
-    lsi = {n: p for n, p in effects.items() if n not in NON_LSI}
-    if lsi:
-        tr = otf.compose(*[(lambda fy, fx, n=n, p=p: get_effect(n).transfer(fy, fx, **p))
-                           for n, p in lsi.items()])
-        out = otf.apply_transfer(out, tr)
-    for n, p in effects.items():
-        if n in NON_LSI:
-            out = get_effect(n).apply(out, **p)
-    return out
+def _bands(img: np.ndarray) -> np.ndarray:
+    a = np.asarray(img, float)
+    return a[np.newaxis] if a.ndim == 2 else a
 
 
 def blockiness(residual_grey: np.ndarray, mask: np.ndarray, *, period: int = 8
@@ -132,11 +158,212 @@ def _rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean((a[:, mask] - b[:, mask]) ** 2)))
 
 
-def _hp_factor(sigma: float) -> float:
-    d = np.zeros((33, 33))
-    d[16, 16] = 1.0
-    h = d - ndimage.gaussian_filter(d, sigma)
-    return float(np.sum(h**2))
+def _inputs(real: np.ndarray, simulate: Callable[[float], np.ndarray], q_base: float,
+            valid: np.ndarray | None, block_px: int | None, quantized: bool | None,
+            gsd_m: float) -> Inputs:
+    r = _bands(real)
+    rows, cols = r.shape[-2:]
+    valid = np.ones((rows, cols), bool) if valid is None else np.asarray(valid, bool)
+    if block_px is None:
+        block_px = 64 if min(rows, cols) >= 640 else 32
+    if quantized is None:
+        quantized = bool(np.all(r[:, valid] == np.round(r[:, valid])))
+    return Inputs(real=r, grey=_grey(r), valid=valid, simulate=simulate,
+                  base=_bands(simulate(q_base)), q_base=float(q_base), block_px=block_px,
+                  quantized=quantized, gsd_m=gsd_m)
+
+
+def _coregister(inp: Inputs) -> Registration:
+    """Global sub-pixel shift, then a shift + rotation + scale field from local shifts."""
+    rows, cols = inp.valid.shape
+    bg = _grey(inp.base)
+    est = estimate_shift(bg, inp.grey, valid=inp.valid, block_px=inp.block_px)
+    mag = float(np.hypot(*est.shift_px))
+    sig = float(np.hypot(*est.sigma_px))
+    applied = mag >= MIN_SHIFT_PX and est.delta_bic >= MIN_DELTA_BIC and mag > 3 * sig
+    whole = (float(np.round(est.shift_px[0])), float(np.round(est.shift_px[1])))
+    aff = estimate_affine(fourier_shift(bg, whole), inp.grey, valid=inp.valid, block_px=16)
+    field_px = None
+    if aff.n_blocks >= 6 and np.isfinite(aff.residual_px):
+        corners = np.array([[0, 0], [cols, 0], [0, rows], [cols, rows]], float) - \
+            np.array(aff.centre_px)
+        linear_px = float(np.max(np.hypot(*(aff.matrix @ corners.T))))
+        if linear_px >= MIN_SHIFT_PX:
+            dcol, drow = aff.field((rows, cols))
+            field_px = (dcol + whole[0], drow + whole[1])
+            applied = True
+    # invalid pixels take their nearest valid value, so that shifting never pulls fill
+    # values (zeros) into the valid area
+    fill_idx = None
+    if not inp.valid.all():
+        fill_idx = ndimage.distance_transform_edt(~inp.valid, return_distances=False,
+                                                  return_indices=True)
+    return Registration(estimate=est, affine=aff, applied=applied,
+                        shift_px=est.shift_px if applied else (0.0, 0.0), whole_px=whole,
+                        field_px=field_px, fill_idx=fill_idx)
+
+
+def _band_affine(model: np.ndarray, real: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    out = np.empty_like(model)
+    for b in range(model.shape[0]):
+        a = np.column_stack([model[b][mask], np.ones(mask.sum())])
+        sol, *_ = np.linalg.lstsq(a, real[b][mask], rcond=None)
+        out[b] = sol[0] * model[b] + sol[1]
+    return out
+
+
+def _find_compression(inp: Inputs, reg: Registration) -> CompressionFit | None:
+    """8×8 block steps in the baseline residual; the quality that removes them."""
+    base_aff = _band_affine(reg.move(inp.base), inp.real, inp.valid)
+    blk = blockiness(_grey(inp.real - base_aff), inp.valid)
+    if not (blk["row_ratio"] > 1.08 and blk["col_ratio"] > 1.08
+            and min(blk["row_z"], blk["col_z"]) > 5.0):
+        return None
+    offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
+
+    def steps_left(qual: int) -> float:
+        fit = CompressionFit(qual, offset, blk)
+        b2 = blockiness(_grey(inp.real - fit.apply(base_aff)), inp.valid)
+        return abs(b2["row_excess_dn2"] + b2["col_excess_dn2"])
+
+    coarse = min((10, 20, 30, 40, 50, 60, 70, 80, 90, 95), key=steps_left)
+    fine = list(range(max(5, coarse - 8), min(100, coarse + 9), 2))
+    quality = min(fine, key=steps_left)
+    if quality > MAX_CLAIMED_QUALITY:  # at the null end of its range: no compression shown
+        return None
+    return CompressionFit(int(quality), offset, blk)
+
+
+def _affine_residual(model_g: np.ndarray, real_g: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    a = np.column_stack([model_g[mask], np.ones(mask.sum())])
+    sol, *_ = np.linalg.lstsq(a, real_g[mask], rcond=None)
+    return real_g - (sol[0] * model_g + sol[1])
+
+
+def _changed_regions(inp: Inputs, model_grey: np.ndarray, *, ratio: float,
+                     floor_dn2: float = MIN_REGION_DN2
+                     ) -> tuple[list[locate.Region], np.ndarray, np.ndarray, np.ndarray]:
+    """Regions of significant residual energy: (regions, labels, energy map, inner mask)."""
+    e = _affine_residual(model_grey, inp.grey, inp.valid)
+    inner = ndimage.binary_erosion(inp.valid, np.ones((5, 5)), border_value=0)
+    energy = locate.residual_energy_map(np.where(inner, e, 0))
+    expected = max(float(np.median(energy[inner])), floor_dn2)
+    regions, labels = locate.find_regions(energy, valid=inner, expected_dn2=expected,
+                                          ratio_threshold=ratio)
+    return regions, labels, energy, inner
+
+
+def _folds(origins: list[tuple[int, int]], block_px: int, shape: tuple[int, int]
+           ) -> list[list[tuple[int, int]]]:
+    """Blocks grouped by quadrant of their centre (contiguous, so held-out blocks share
+    as few pixels as possible with the training blocks)."""
+    rows, cols = shape
+    groups: list[list[tuple[int, int]]] = [[], [], [], []]
+    for o in origins:
+        k = 2 * int(o[0] + block_px / 2 >= rows / 2) + int(o[1] + block_px / 2 >= cols / 2)
+        groups[k].append(o)
+    return [g for g in groups if len(g) >= 2]
+
+
+def _spectral_setup(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
+                    q_hi: float) -> SpectralSetup:
+    """Exact simulations on a Q grid, screened Welch blocks, CV folds."""
+    from geosim.errors import DiagnosisError
+
+    rows, cols = inp.valid.shape
+    n_q = int(np.ceil(np.log(q_hi / q_lo) / np.log(1.12))) + 1
+    q_grid = np.exp(np.linspace(np.log(q_lo), np.log(q_hi), n_q))
+    sims_grey = [_grey(model.sim_at(inp.simulate, q)) for q in q_grid]
+    base_g = _grey(model.sim_at(inp.simulate, inp.q_base))
+    block_px = inp.block_px
+    while True:  # smaller Welch blocks when changes leave too few whole blocks
+        origins = block_origins((rows, cols), block_px=block_px, valid=fit_mask)
+        origins, rho = screen_blocks(base_g, inp.grey, origins, block_px)
+        if len(origins) >= MIN_BLOCKS or block_px <= 16:
+            break
+        block_px //= 2
+    if len(origins) < 8:  # hard minimum
+        raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
+                             "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
+                             "larger common extent")
+    full = build_spectral_data(sims_grey, q_grid, inp.grey, origins=origins, block_px=block_px)
+    groups = _folds(origins, block_px, (rows, cols))
+    folds = []
+    if len(groups) >= 2:
+        for k, g in enumerate(groups):
+            train = [o for j, gg in enumerate(groups) if j != k for o in gg]
+            folds.append((build_spectral_data(sims_grey, q_grid, inp.grey, origins=train,
+                                              block_px=block_px),
+                          build_spectral_data(sims_grey, q_grid, inp.grey, origins=g,
+                                              block_px=block_px)))
+    return SpectralSetup(q_grid=q_grid, sims_grey=sims_grey, origins=origins, block_px=block_px,
+                         full=full, folds=folds, n_screened=len(rho) - len(origins))
+
+
+def _fit_radiometry(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray) -> ForwardModel:
+    """Exposure seam, then haze / colour response, on the blurred model."""
+    m_blur = model.without(seam=None).blurred(inp.simulate)
+
+    # gains/offsets from large-scale brightness (σ = 2 px low-pass): a model that carries
+    # aliasing or noise the scene does not share would otherwise bias the slope low
+    def lowpass(img: np.ndarray) -> np.ndarray:
+        return np.stack([ndimage.gaussian_filter(b, RADIOMETRY_SIGMA_PX) for b in img])
+
+    corr = 4.0 * np.pi * RADIOMETRY_SIGMA_PX**2
+    # an exposure seam of the UAV mosaic gives two radiometric relations; one regression
+    # would thread between them and absorb the seam into the haze
+    lp_blur, lp_real = lowpass(m_blur), lowpass(inp.real)
+    seam = find_gain_step(lp_blur, lp_real, fit_mask, corr_px2=corr)
+    if seam is not None:
+        lp_blur = lp_blur * np.where(seam.side, seam.factor, 1.0)
+    rsel = select_radiometry(fit_radiometry(lp_blur, lp_real, fit_mask, corr_px2=corr),
+                             corr_px2=corr)
+    rad = RadiometryChoice(name=rsel["name"], params=dict(rsel["params"]),  # type: ignore[arg-type]
+                           sigmas=dict(rsel.get("sigmas", {})),  # type: ignore[arg-type]
+                           delta_bic=float(rsel["delta_bic"]),  # type: ignore[arg-type]
+                           bic=dict(rsel["bic"]))  # type: ignore[arg-type]
+    return model.without(seam=seam, radiometry=rad)
+
+
+def _refit_without(sel: BlurSelection, setup: SpectralSetup, keep: list[str],
+                   q_base: float) -> tuple[float, dict[str, dict[str, float]]]:
+    if not keep:
+        return sel.null.q, {}
+    f = fit_transfer(setup.full, keep, q_starts=(sel.final.q, q_base))
+    return f.q, f.effects
+
+
+def _never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
+                 se_of: Callable[[np.ndarray], float], rng_seed: int
+                 ) -> tuple[ForwardModel, list[dict[str, str]]]:
+    """Fall back to fewer effects until the delivered refined simulation fits at least as
+    well as the baseline (spectral error): first without noise, then without the blur
+    effects from the last chosen, finally the baseline Q alone."""
+    base_se = se_of(np.round(inp.base) if inp.quantized else inp.base)
+    withdrawn: list[dict[str, str]] = []
+
+    def se(m: ForwardModel) -> float:
+        return se_of(m.delivered(inp.simulate, np.random.default_rng(rng_seed),
+                                 quantized=inp.quantized))
+
+    if se(model) <= base_se:
+        return model, withdrawn
+    if model.noise is not None and model.noise.claimed:
+        model = model.without(noise=None)
+        withdrawn.append({"name": "sensor_noise", "reason": "refined fit worse with it"})
+        if se(model) <= base_se:
+            return model, withdrawn
+    names = list(model.blur)
+    while names:
+        gone = names.pop()
+        q, eff = _refit_without(sel, setup, names, inp.q_base)
+        model = model.without(q=q, blur=eff)
+        withdrawn.append({"name": gone, "reason": "refined fit worse with it"})
+        if se(model) <= base_se:
+            return model, withdrawn
+    model = model.without(q=inp.q_base)
+    withdrawn.append({"name": "refitted_q", "reason": "refined fit worse than the LV Q"})
+    return model, withdrawn
 
 
 def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *,
@@ -171,364 +398,233 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     -------
     Diagnosis
     """
-    r = np.asarray(real, dtype=float)
-    if r.ndim == 2:
-        r = r[np.newaxis]
-    rows, cols = r.shape[-2:]
-    valid = np.ones((rows, cols), bool) if valid is None else np.asarray(valid, bool)
-    if block_px is None:
-        block_px = 64 if min(rows, cols) >= 640 else 32
-    if quantized is None:
-        quantized = bool(np.all(r[:, valid] == np.round(r[:, valid])))
-    base = np.asarray(simulate(q_base), float)
-    if base.ndim == 2:
-        base = base[np.newaxis]
-    rg = _grey(r)
-    bg = _grey(base)
-    effects_out: list[dict[str, Any]] = []
-
-    # 1. co-registration -------------------------------------------------------------
-    est = estimate_shift(bg, rg, valid=valid, block_px=block_px)
-    mag = float(np.hypot(*est.shift_px))
-    sig = float(np.hypot(*est.sigma_px))
-    misreg = mag >= MIN_SHIFT_PX and est.delta_bic >= MIN_DELTA_BIC and mag > 3 * sig
-    shift = est.shift_px if misreg else (0.0, 0.0)
-    # local shifts: rotation / scale between the products (e.g. a UAV georeference error)
-    whole = (float(np.round(est.shift_px[0])), float(np.round(est.shift_px[1])))
-    aff = estimate_affine(fourier_shift(bg, whole), rg, valid=valid, block_px=16)
-    field = None
-    if aff.n_blocks >= 6 and np.isfinite(aff.residual_px):
-        corners = np.array([[0, 0], [cols, 0], [0, rows], [cols, rows]], float) - \
-            np.array(aff.centre_px)
-        linear_px = float(np.max(np.hypot(*(aff.matrix @ corners.T))))
-        if linear_px >= MIN_SHIFT_PX:
-            dcol, drow = aff.field((rows, cols))
-            field = (dcol + whole[0], drow + whole[1])
-            misreg = True
-    comp = get_effect("compression")
-
-    # invalid pixels take their nearest valid value, so that shifting never pulls fill
-    # values (zeros) into the valid area
-    fill_idx = None
-    if not valid.all():
-        fill_idx = ndimage.distance_transform_edt(~valid, return_distances=False,
-                                                  return_indices=True)
-
-    def raw_at(q: float) -> np.ndarray:
-        s = np.asarray(simulate(q), float)
-        s = s[np.newaxis] if s.ndim == 2 else s
-        if fill_idx is not None:
-            s = s[:, fill_idx[0], fill_idx[1]]
-        if field is not None:
-            return warp_by_field(s, *field)
-        return fourier_shift(s, shift) if misreg else s
-
-    # 1b. compression: 8×8 block steps in the baseline residual ------------------------
-    def band_affine(model: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        out = np.empty_like(model)
-        for b in range(model.shape[0]):
-            a = np.column_stack([model[b][mask], np.ones(mask.sum())])
-            sol, *_ = np.linalg.lstsq(a, r[b][mask], rcond=None)
-            out[b] = sol[0] * model[b] + sol[1]
-        return out
-
-    base_aff = band_affine(raw_at(q_base), valid)
-    blk = blockiness(_grey(r - base_aff), valid)
-    compressed = (blk["row_ratio"] > 1.08 and blk["col_ratio"] > 1.08
-                  and min(blk["row_z"], blk["col_z"]) > 5.0)
-    offset_px = (blk["row_phase"] % 8, blk["col_phase"] % 8)
-    quality = None
-    if compressed:
-        # the right quality removes the block steps from the residual: coarse, then fine
-        def steps_left(qual: int) -> float:
-            b2 = blockiness(_grey(r - comp.apply(base_aff, quality=qual,
-                                                   block_offset_px=offset_px)), valid)
-            return abs(b2["row_excess_dn2"] + b2["col_excess_dn2"])
-
-        coarse = min((10, 20, 30, 40, 50, 60, 70, 80, 90, 95), key=steps_left)
-        fine = [q for q in range(max(5, coarse - 8), min(100, coarse + 9), 2)]
-        quality = min(fine, key=steps_left)
-
-    def sim_at(q: float) -> np.ndarray:
-        s = raw_at(q)
-        return comp.apply(s, quality=quality, block_offset_px=offset_px) if compressed else s
-
-    # 2. first pass of scene-change regions from the baseline -------------------------
-    def affine_residual(model_g: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        a = np.column_stack([model_g[mask], np.ones(mask.sum())])
-        sol, *_ = np.linalg.lstsq(a, rg[mask], rcond=None)
-        return rg - (sol[0] * model_g + sol[1])
-
-    e0 = affine_residual(_grey(sim_at(q_base)), valid)
-    inner0 = ndimage.binary_erosion(valid, np.ones((5, 5)), border_value=0)
-    en0 = locate.residual_energy_map(np.where(inner0, e0, 0))
-    exp0 = max(float(np.median(en0[inner0])), MIN_REGION_DN2)
-    regions0, labels0 = locate.find_regions(en0, valid=inner0, expected_dn2=exp0,
-                                            ratio_threshold=8.0)
-    sc_mask = locate.regions_mask(labels0, regions0, kind=None)
-    fit_mask = valid & ~sc_mask
-
-    # 3. spectra against a Q grid of exact simulations --------------------------------
+    inp = _inputs(real, simulate, q_base, valid, block_px, quantized, gsd_m)
+    reg = _coregister(inp)
+    model = ForwardModel(q=inp.q_base, blur={}, registration=reg)
+    model = model.without(compression=_find_compression(inp, reg))
+    regions0, labels0, _, _ = _changed_regions(inp, _grey(model.sim_at(simulate)), ratio=8.0)
+    fit_mask = inp.valid & ~locate.regions_mask(labels0, regions0, kind=None)
     if q_hi is None:
         q_hi = max(2.5, 1.3 * q_base)
-    n_q = int(np.ceil(np.log(q_hi / q_lo) / np.log(1.12))) + 1
-    q_grid = np.exp(np.linspace(np.log(q_lo), np.log(q_hi), n_q))
-    sims_grey = [_grey(sim_at(q)) for q in q_grid]
-    base_g = _grey(sim_at(q_base))
-    while True:  # smaller Welch blocks when changes leave too few whole blocks
-        origins = block_origins((rows, cols), block_px=block_px, valid=fit_mask)
-        origins, rho = screen_blocks(base_g, rg, origins, block_px)
-        if len(origins) >= MIN_BLOCKS or block_px <= 16:
-            break
-        block_px //= 2
-    if len(origins) < 8:  # hard minimum
-        from geosim.errors import DiagnosisError
-
-        raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
-                             "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
-                             "larger common extent")
-    n_screened = len(rho) - len(origins)
-    mid = cols / 2.0
-    oa = [o for o in origins if o[1] + block_px / 2 < mid]
-    ob = [o for o in origins if o[1] + block_px / 2 >= mid]
-    full = build_spectral_data(sims_grey, q_grid, rg, origins=origins, block_px=block_px)
-    halves = (None, None)
-    if len(oa) >= 4 and len(ob) >= 4:
-        halves = (build_spectral_data(sims_grey, q_grid, rg, origins=oa, block_px=block_px),
-                  build_spectral_data(sims_grey, q_grid, rg, origins=ob, block_px=block_px))
-
-    # 4. blur effects by forward selection ------------------------------------------
-    sel = select_blur(full, *halves, candidates=blur_candidates,
+    setup = _spectral_setup(inp, model, fit_mask, q_lo, q_hi)
+    sel = select_blur(setup.full, setup.folds, candidates=blur_candidates,
                       q_starts=(float(np.clip(q_base, q_lo, q_hi)), 1.5))
-    fin = sel.final
-
-    # 5. radiometry on the blurred model -------------------------------------------
-    def det_model(q: float, eff: dict[str, dict[str, float]]) -> np.ndarray:
-        return _blur_apply(sim_at(q), eff)
-
-    m_blur = det_model(fin.q, fin.effects)
-    # gains/offsets from large-scale brightness (σ = 2 px low-pass): a model that carries
-    # aliasing or noise the scene does not share would otherwise bias the slope low
-    # (regression dilution)
-    def lowpass(img: np.ndarray) -> np.ndarray:
-        return np.stack([ndimage.gaussian_filter(b, RADIOMETRY_SIGMA_PX) for b in img])
-
-    corr = 4.0 * np.pi * RADIOMETRY_SIGMA_PX**2
-    # an exposure seam of the UAV mosaic (one side of a line brighter in every band) gives
-    # two radiometric relations; one regression would thread between them and absorb the
-    # seam into the satellite's haze: fit the haze on the seam-corrected model instead
-    lp_blur, lp_real = lowpass(m_blur), lowpass(r)
-    seam = find_gain_step(lp_blur, lp_real, fit_mask, corr_px2=corr)
-    if seam is not None:
-        seam_gain = np.where(seam.side, seam.factor, 1.0)
-        m_blur = m_blur * seam_gain
-        lp_blur = lp_blur * seam_gain
-    rad = fit_radiometry(lp_blur, lp_real, fit_mask, corr_px2=corr)
-    rsel = select_radiometry(rad, corr_px2=corr)
-    if rsel["name"] == "haze":
-        p = rsel["params"]
-        m_rad = get_effect("haze").apply(m_blur, **p)  # type: ignore[arg-type]
-    elif rsel["name"] == "colour_response":
-        p = rsel["params"]
-        m_rad = m_blur * np.asarray(p["gain"])[:, None, None]  # type: ignore[index]
-        if "offset_dn" in p:  # type: ignore[operator]
-            m_rad = m_rad + np.asarray(p["offset_dn"])[:, None, None]  # type: ignore[index]
-    else:
-        m_rad = m_blur
-
-    resid = r - m_rad
-    # 7. noise from the high-passed residual ----------------------------------------
-    hp = resid - np.stack([ndimage.gaussian_filter(b, 1.0) for b in resid])
-    nf = fit_noise(hp / np.sqrt(_hp_factor(1.0)), m_rad, fit_mask, quantized=quantized)
-    sigma_floor = 1.0 / 12.0 if quantized else 0.05
-    x = (nf.mean_variance_dn2 + nf.quantization_dn2) / sigma_floor
-    n_px = int(fit_mask.sum()) * r.shape[0]
-    noise_dbic = float(n_px * (x - 1 - np.log(x)) - 2 * np.log(n_px)) if x > 1 else 0.0
-    noisy = (nf.mean_variance_dn2 >= MIN_NOISE_VAR_DN2 and noise_dbic >= MIN_DELTA_BIC
-             and nf.mean_variance_dn2 > 5 * max(nf.mean_variance_sigma, 1e-9))
-
-    # 8. final model, regions, metrics ----------------------------------------------
-    refined_det = m_rad
-    refined = m_rad
-    if noisy:
-        refined = get_effect("sensor_noise").apply(m_rad, rng=rng, gain_dn=nf.gain_dn,
-                                                   read_var_dn2=nf.read_var_dn2)
-    if quantized:  # delivered like the real product, in whole DN
-        refined = np.round(refined)
-    e_final = _grey(r - refined_det)
-    inner = ndimage.binary_erosion(valid, np.ones((5, 5)), border_value=0)
-    energy = locate.residual_energy_map(np.where(inner, e_final, 0))
-    expected = max(float(np.median(energy[inner])), MIN_REGION_DN2,
-                   0.447 * (nf.mean_variance_dn2 + nf.quantization_dn2))
-    regions, labels = locate.find_regions(energy, valid=inner, expected_dn2=expected,
-                                          ratio_threshold=6.0)
+    model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
+    model = _fit_radiometry(inp, model, fit_mask)
+    model = model.without(noise=estimate_noise(
+        inp.real, model.deterministic(simulate), fit_mask, origins=setup.origins,
+        block_px=setup.block_px, quantized=inp.quantized))
     # metrics over the pixels where both images show the same scene: outside every region
-    sc_final = locate.regions_mask(labels, regions, kind=None)
-    eval_mask = ndimage.binary_erosion(valid, np.ones((5, 5)), border_value=0) & ~sc_final
-    ev_origins = block_origins((rows, cols), block_px=block_px, valid=eval_mask)
+    noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
+    regions, labels, energy, inner = _changed_regions(
+        inp, _grey(model.deterministic(simulate)), ratio=6.0,
+        floor_dn2=max(MIN_REGION_DN2, 0.447 * noise_var))
+    eval_mask = inner & ~locate.regions_mask(labels, regions, kind=None)
+    ev_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=eval_mask)
     if len(ev_origins) < 4:
-        ev_origins = origins
+        ev_origins = setup.origins
 
-    def metrics(img: np.ndarray) -> tuple[float, float]:
-        """RMSE of the expected image; spectral error of the image as delivered (whole DN
-        when the real product is quantized, so both carry the same rounding floor)."""
-        delivered = np.round(img) if quantized else img
-        return (_rmse(img, r, eval_mask),
-                spectral_error(_grey(delivered), rg, block_px=block_px, origins=ev_origins))
+    def se_of(img: np.ndarray) -> float:
+        return spectral_error(_grey(img), inp.grey, block_px=setup.block_px, origins=ev_origins)
 
-    base_rmse, base_se = metrics(base)
-    # cumulative effect list with metrics after each
-    steps: list[tuple[str, dict[str, Any], float, dict[str, Any], np.ndarray, np.ndarray]] = []
-    if misreg:
-        if field is not None:
-            d = (aff.shift_px[0] + whole[0], aff.shift_px[1] + whole[1])
-            mparams: dict[str, Any] = {
-                "shift_px": [d[0], d[1]], "shift_m": [d[0] * gsd_m, -d[1] * gsd_m],
-                "rotation_deg": aff.rotation_deg, "scale": aff.scale,
-                "local_residual_px": aff.residual_px, "at_px": list(aff.centre_px)}
-        else:
-            d = est.shift_px
-            mparams = {"shift_px": [d[0], d[1]], "shift_m": list(est.shift_m(gsd_m))}
-        m0 = sim_at(q_base)
-        # image-domain evidence: grey residual (after an affine radiometric match) before and
-        # after moving the simulation; residuals correlate over ≈ 4 px
-        n_ind = max(eval_mask.sum() / 4.0, 3.0)
-        rss0 = float(np.sum(affine_residual(bg, eval_mask)[eval_mask] ** 2))
-        rss1 = float(np.sum(affine_residual(_grey(m0), eval_mask)[eval_mask] ** 2))
-        k = 6 if field is not None else 2
-        m_dbic = float(n_ind * np.log(max(rss0, 1e-12) / max(rss1, 1e-12)) - k * np.log(n_ind))
-        steps.append(("misregistration", mparams, m_dbic,
-                      {"shift_px": list(est.sigma_px)}, m0, m0))
-    if compressed:
-        det = sim_at(q_base)
-        steps.append(("compression", {"quality": quality, "block_offset_px": list(offset_px)},
-                      float(min(blk["row_z"], blk["col_z"]) ** 2), dict(blk), det, det))
+    noise_seed = int(rng.integers(0, 2**31 - 1))
+    model, withdrawn = _never_worse(inp, model, sel, setup, se_of, noise_seed)
+    refined = model.delivered(simulate, np.random.default_rng(noise_seed),
+                              quantized=inp.quantized)
+    claims = _claims(inp, model, sel, regions, labels, inner, eval_mask, se_of, noise_seed)
+    summary = _summary(inp, model, sel, setup, claims, eval_mask, se_of, refined, withdrawn)
+    maps = _maps(inp, model, energy)
+    plots = _plots(inp, model, sel, setup, ev_origins, refined, summary)
+    return Diagnosis(summary=summary, real=inp.real, baseline=inp.base, refined=refined,
+                     valid=inp.valid, maps=maps, regions=regions, labels=labels, plots=plots)
+
+
+def _claims(inp: Inputs, model: ForwardModel, sel: BlurSelection,
+            regions: list[locate.Region], labels: np.ndarray, inner: np.ndarray,
+            eval_mask: np.ndarray, se_of: Callable[[np.ndarray], float], noise_seed: int
+            ) -> list[Claim]:
+    """The claimed effects in order, each with the fit after adding it (cumulative)."""
+    sim = inp.simulate
+    reg = model.registration
+    empty = ForwardModel(q=inp.q_base, blur={}, registration=reg)
+    out: list[tuple[Claim, ForwardModel]] = []
+    if reg.applied:
+        m0 = empty
+        n_ind = max(eval_mask.sum() / 4.0, 3.0)  # residuals correlate over ≈ 4 px
+        rss0 = float(np.sum(_affine_residual(_grey(inp.base), inp.grey, eval_mask)[eval_mask]
+                            ** 2))
+        rss1 = float(np.sum(_affine_residual(_grey(m0.sim_at(sim)), inp.grey,
+                                             eval_mask)[eval_mask] ** 2))
+        k = 6 if reg.field_px is not None else 2
+        dbic = float(n_ind * np.log(max(rss0, 1e-12) / max(rss1, 1e-12)) - k * np.log(n_ind))
+        out.append((Claim("misregistration", reg.params(inp.gsd_m),
+                          {"shift_px": list(reg.estimate.sigma_px)}, dbic), m0))
+    cur = empty
+    if model.compression is not None:
+        c = model.compression
+        cur = cur.without(compression=c)
+        out.append((Claim("compression", {"quality": c.quality,
+                                          "block_offset_px": list(c.offset_px)},
+                          float(min(c.test["row_z"], c.test["col_z"]) ** 2), dict(c.test)), cur))
     for st in sel.steps:
-        m = det_model(st.fit.q, st.fit.effects)
-        steps.append((st.name, dict(st.fit.effects[st.name]), st.delta_bic,
-                      {**st.fit.sigmas.get(st.name, {}), "heldout_gain": st.heldout_gain,  # type: ignore[dict-item]
-                       "q": st.fit.q, "alternatives": st.alternatives}, m, m))
-    if seam is not None:
-        steps.append(("exposure_seam", {
-            "factor": seam.factor, "normal_deg": seam.normal_deg, "offset_px": seam.offset_px,
-            "fraction": seam.fraction, "line_px": seam.endpoints_px()}, seam.delta_bic,
-            {"explained": seam.explained}, m_blur, m_blur))
-    if rsel["name"]:
-        steps.append((str(rsel["name"]), dict(rsel["params"]),  # type: ignore[arg-type]
-                      float(rsel["delta_bic"]), dict(rsel.get("sigmas", {})),  # type: ignore[arg-type]
-                      m_rad, m_rad))
-    if noisy:
-        steps.append(("sensor_noise", {"gain_dn": nf.gain_dn, "read_var_dn2": nf.read_var_dn2},
-                      noise_dbic, {"gain_dn": nf.gain_sigma, "read_var_dn2": nf.read_sigma},
-                      refined_det, refined))
-    sc_regions = [g for g in regions if g.kind == "scene_change"]
-    if sc_regions:
-        area = sum(g.area_px for g in sc_regions) * gsd_m**2
-        # evidence: region pixels have a larger residual variance than the rest
-        in_sc = locate.regions_mask(labels, regions, dilate_px=0) & inner
-        out_sc = inner & ~sc_final
-        n_in = max(in_sc.sum() / 4.0, 1.0)
-        v_in = float(np.mean(e_final[in_sc] ** 2)) if in_sc.any() else 0.0
-        v_out = max(float(np.mean(e_final[out_sc] ** 2)) if out_sc.any() else 1e-12, 1e-12)
-        sc_dbic = float(n_in * (v_in / v_out - 1 - np.log(max(v_in / v_out, 1e-12)))
-                        - 2 * len(sc_regions) * np.log(max(inner.sum() / 4.0, 2.0)))
-        steps.append(("scene_change", {"n_regions": len(sc_regions), "area_m2": area},
-                      sc_dbic, {}, refined_det, refined))
-    for name, params, dbic, sigmas, det, sto in steps:
-        rm, _ = metrics(det)
-        _, se = metrics(sto)
-        alts = sigmas.pop("alternatives", []) if isinstance(sigmas, dict) else []
-        entry = {"name": name, "params": params, "uncertainty": sigmas,
-                 "explanation": get_effect(name).describe(params),
-                 "signature": get_effect(name).signature,
-                 "delta_bic": dbic, "rmse_after": rm, "spectral_error_after": se}
-        if alts:
-            entry["indistinguishable_from"] = alts
-        effects_out.append(entry)
-    ref_rmse, _ = metrics(refined_det)
-    _, ref_se = metrics(refined)
-    ambiguities = [{"claimed": st.name, "alternatives": st.alternatives,
-                    "note": (f"{st.name} and {', '.join(st.alternatives)} explain the measured "
-                             "transfer function about equally well (ΔBIC within 6); the data "
-                             "cannot tell them apart")}
-                   for st in sel.steps if st.alternatives]
-    lv_real = locate.laplacian_variance(rg, valid)
-    lv_base = locate.laplacian_variance(bg, valid)
-    qs = fin.sigmas.get("q", float("nan"))
-    summary: dict[str, Any] = {
-        "baseline": {"q": float(q_base), "lv_satellite": lv_real, "lv_simulated": lv_base,
+        if st.name not in model.blur:
+            continue
+        cur = cur.without(q=st.fit.q, blur={n: p for n, p in st.fit.effects.items()
+                                            if n in model.blur})
+        unc = {**st.fit.sigmas.get(st.name, {}), "q": st.fit.q}  # type: ignore[dict-item]
+        alts = [{"name": a.name, "heldout_gain": a.cv_gain, "params": a.params}
+                for a in st.alternatives]
+        out.append((Claim(st.name, dict(st.fit.effects[st.name]), unc, st.delta_bic,
+                          st.heldout_gain, alts), cur))
+    cur = cur.without(q=model.q, blur=model.blur)
+    if model.seam is not None:
+        s = model.seam
+        cur = cur.without(seam=s)
+        out.append((Claim("exposure_seam", {
+            "factor": s.factor, "normal_deg": s.normal_deg, "offset_px": s.offset_px,
+            "fraction": s.fraction, "line_px": s.endpoints_px()}, {"explained": s.explained},
+            s.delta_bic), cur))
+    if model.radiometry is not None and model.radiometry.name:
+        r = model.radiometry
+        cur = cur.without(radiometry=r)
+        out.append((Claim(r.name, r.params, r.sigmas, r.delta_bic), cur))  # type: ignore[arg-type]
+    if model.noise is not None and model.noise.claimed:
+        n = model.noise
+        cur = cur.without(noise=n)
+        out.append((Claim("sensor_noise", {"gain_dn": n.gain_dn, "read_var_dn2": n.read_var_dn2},
+                          {"gain_dn": n.gain_sigma, "read_var_dn2": n.read_sigma},
+                          n.delta_bic), cur))
+    sc = [g for g in regions if g.kind == "scene_change"]
+    if sc:
+        out.append((_scene_change_claim(inp, model, sc, regions, labels, inner), cur))
+    claims = []
+    for c, m in out:
+        c.rmse_after = _rmse(m.deterministic(sim), inp.real, eval_mask)
+        c.spectral_error_after = se_of(m.delivered(sim, np.random.default_rng(noise_seed),
+                                                   quantized=inp.quantized))
+        claims.append(c)
+    return claims
+
+
+def _scene_change_claim(inp: Inputs, model: ForwardModel, sc: list[locate.Region],
+                        regions: list[locate.Region], labels: np.ndarray, inner: np.ndarray
+                        ) -> Claim:
+    """Evidence: the region pixels have a larger residual variance than the rest."""
+    e_final = _grey(inp.real - model.deterministic(inp.simulate))
+    area = sum(g.area_px for g in sc) * inp.gsd_m**2
+    in_sc = locate.regions_mask(labels, regions, dilate_px=0) & inner
+    out_sc = inner & ~locate.regions_mask(labels, regions, kind=None)
+    n_in = max(in_sc.sum() / 4.0, 1.0)
+    v_in = float(np.mean(e_final[in_sc] ** 2)) if in_sc.any() else 0.0
+    v_out = max(float(np.mean(e_final[out_sc] ** 2)) if out_sc.any() else 1e-12, 1e-12)
+    dbic = float(n_in * (v_in / v_out - 1 - np.log(max(v_in / v_out, 1e-12)))
+                 - 2 * len(sc) * np.log(max(inner.sum() / 4.0, 2.0)))
+    return Claim("scene_change", {"n_regions": len(sc), "area_m2": area}, {}, dbic)
+
+
+def _summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
+             claims: list[Claim], eval_mask: np.ndarray, se_of: Callable[[np.ndarray], float],
+             refined: np.ndarray, withdrawn: list[dict[str, str]]) -> dict[str, Any]:
+    base_rmse = _rmse(inp.base, inp.real, eval_mask)
+    base_se = se_of(np.round(inp.base) if inp.quantized else inp.base)
+    ref_rmse = _rmse(model.deterministic(inp.simulate), inp.real, eval_mask)
+    ref_se = se_of(refined)
+    ambiguities = [{"claimed": c.name, "alternatives": [a["name"] for a in c.alternatives],
+                    "note": (f"{c.name} and {', '.join(a['name'] for a in c.alternatives)} "
+                             "predict the held-out blocks about equally well (same family); "
+                             "the data cannot tell them apart")}
+                   for c in claims if c.alternatives]
+    reg, n = model.registration, model.noise
+    qs = sel.final.sigmas.get("q", float("nan"))
+    q_grid = setup.q_grid
+    return {
+        "baseline": {"q": inp.q_base, "lv_satellite": locate.laplacian_variance(inp.grey,
+                                                                                inp.valid),
+                     "lv_simulated": locate.laplacian_variance(_grey(inp.base), inp.valid),
                      "rmse": base_rmse, "spectral_error": base_se},
-        "effects": effects_out,
-        "refined": {"q": float(fin.q), "q_sigma": float(qs),  # type: ignore[arg-type]
-                    "q_in_physical_range": bool(PHYSICAL_Q[0] <= fin.q <= PHYSICAL_Q[1]),
-                    "q_at_fit_bound": bool(fin.q <= q_grid[0] * 1.01 or fin.q >= q_grid[-1] / 1.01),
+        "effects": [c.to_json() for c in claims],
+        "refined": {"q": float(model.q), "q_sigma": float(qs),  # type: ignore[arg-type]
+                    "q_in_physical_range": bool(PHYSICAL_Q[0] <= model.q <= PHYSICAL_Q[1]),
+                    "q_at_fit_bound": bool(model.q <= q_grid[0] * 1.01
+                                           or model.q >= q_grid[-1] / 1.01),
                     "physical_q_range": list(PHYSICAL_Q),
                     "rmse": ref_rmse, "spectral_error": ref_se,
                     "rmse_note": "rmse of the noise-free models; spectral_error of the "
                                  "simulations as delivered (with the refined noise realisation, "
                                  "rounded to whole DN when the real scene is)"},
         "ambiguities": ambiguities,
+        "withdrawn": withdrawn,
         "candidates_delta_bic": {k: float(v) for k, v in sel.tried.items()},
+        "candidates_heldout_gain": {k: float(v) for k, v in sel.cv_gain.items()},
         "candidates_at_bound": sorted(sel.at_bound),
-        "coregistration": {"shift_px": list(est.shift_px), "sigma_px": list(est.sigma_px),
-                           "delta_bic": float(est.delta_bic), "applied": bool(misreg)},
-        "noise": {"gain_dn": nf.gain_dn, "read_var_dn2": nf.read_var_dn2,
-                  "variance_at_mean_dn2": nf.mean_variance_dn2,
-                  "variance_at_mean_sigma_dn2": nf.mean_variance_sigma, "claimed": bool(noisy),
-                  "quantized": bool(quantized)},
-        "compression_test": blk,
-        "radiometry_bic": rsel["bic"],
-        "settings": {"block_px": block_px, "q_grid": [float(q) for q in q_grid],
-                     "n_blocks": full.n_blocks, "held_out": halves[0] is not None,
-                     "blocks_screened_out": n_screened},
+        "candidates_too_small": sorted(sel.too_small),
+        "coregistration": {"shift_px": list(reg.estimate.shift_px),
+                           "sigma_px": list(reg.estimate.sigma_px),
+                           "delta_bic": float(reg.estimate.delta_bic),
+                           "applied": bool(reg.applied)},
+        "noise": {"gain_dn": n.gain_dn if n else 0.0, "read_var_dn2": n.read_var_dn2 if n else 0.0,
+                  "white_variance_dn2": n.white_var_dn2 if n else 0.0,
+                  "whiteness": n.whiteness if n else float("nan"),
+                  "claimed": bool(n is not None and n.claimed), "quantized": inp.quantized},
+        "compression_test": (model.compression.test if model.compression is not None
+                             else blockiness(_grey(inp.real - _band_affine(
+                                 reg.move(inp.base), inp.real, inp.valid)), inp.valid)),
+        "radiometry_bic": model.radiometry.bic if model.radiometry is not None else {},
+        "settings": {"block_px": setup.block_px, "q_grid": [float(q) for q in q_grid],
+                     "n_blocks": setup.full.n_blocks, "cv_folds": len(setup.folds),
+                     "held_out": bool(setup.folds), "blocks_screened_out": setup.n_screened},
     }
-    # maps (against the co-registered baseline, so that a global shift does not show up as
-    # local blur or loss of gain everywhere) --------------------------------------------
-    bg_al = _grey(sim_at(q_base))  # baseline after co-registration
-    maps = {
-        "residual_energy": np.where(valid, energy, np.nan),
-        "blur_ratio": locate.local_blur_ratio(bg_al, rg, valid=valid),
-    }
-    gmap, omap = locate.local_gain_offset(bg_al, rg, valid=valid)
-    maps["gain"], maps["offset"] = gmap, omap
-    # plot data -------------------------------------------------------------------
-    # Transfer functions, all on the fit's Welch blocks and relative to the sharpest
-    # simulation: the real scene's H1 = S_rs/S_ss, and the models *as fitted to it*, i.e.
-    # times the broadband gain g of the spectral fit. g (< 1) holds the contrast loss of the
-    # radiometry (haze) and the coherence loss from content the two images do not share
-    # (other shadows, moved cattle, sub-pixel local shifts), which lowers H1 at all
-    # frequencies; without it the model curves would sit above the real one although they
-    # fit it (see the README's note on this plot).
-    g_base = fit_transfer(full, [], fix_q=float(np.clip(q_base, q_grid[0], q_grid[-1]))).gain
-    cs_real = cross_spectrum(sims_grey[0], rg, block_px=block_px, origins=origins)
-    fy, fx = cs_real.fy, cs_real.fx
+
+
+def _maps(inp: Inputs, model: ForwardModel, energy: np.ndarray) -> dict[str, np.ndarray]:
+    """Mismatch maps against the co-registered baseline (a global shift would otherwise
+    show up as local blur or loss of gain everywhere)."""
+    bg_al = _grey(model.without(q=inp.q_base).sim_at(inp.simulate))
+    maps = {"residual_energy": np.where(inp.valid, energy, np.nan),
+            "blur_ratio": locate.local_blur_ratio(bg_al, inp.grey, valid=inp.valid)}
+    maps["gain"], maps["offset"] = locate.local_gain_offset(bg_al, inp.grey, valid=inp.valid)
+    return maps
+
+
+def _plots(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
+           ev_origins: list[tuple[int, int]], refined: np.ndarray, summary: dict[str, Any]
+           ) -> dict[str, Any]:
+    """Plot data. Transfer functions on the fit's blocks, relative to the sharpest
+    simulation; the models *as fitted*, i.e. times the broadband gain g of the spectral
+    fit (g < 1 holds haze contrast loss and coherence loss from unshared content)."""
+    q_grid, bp, org = setup.q_grid, setup.block_px, setup.origins
+    g_base = fit_transfer(setup.full, [], fix_q=float(np.clip(inp.q_base, q_grid[0],
+                                                              q_grid[-1]))).gain
+    cs_real = cross_spectrum(setup.sims_grey[0], inp.grey, block_px=bp, origins=org)
     t_real = np.abs(cs_real.transfer)
     t_var = (1.0 - np.clip(cs_real.coherence, 1e-6, 1 - 1e-9)) / (
         2.0 * cs_real.n_blocks * np.clip(cs_real.coherence, 1e-6, 1.0)) * t_real**2
-    g_base_t = g_base * np.abs(full_transfer(sims_grey[0], bg_al, block_px, origins))
-    blur_only = _grey(det_model(fin.q, fin.effects))
-    g_ref_t = fin.gain * np.abs(full_transfer(sims_grey[0], blur_only, block_px, origins))
-    # power spectra of the images as delivered (what spectral_error compares)
-    delivered_base = np.round(base) if quantized else base
-    p_real = cross_spectrum(rg, rg, block_px=block_px, origins=ev_origins).s_ss
-    p_base = cross_spectrum(_grey(delivered_base), rg, block_px=block_px,
+    bg_al = _grey(model.without(q=inp.q_base).sim_at(inp.simulate))
+    g_base_t = g_base * np.abs(full_transfer(setup.sims_grey[0], bg_al, bp, org))
+    blur_only = _grey(model.without(seam=None).blurred(inp.simulate))
+    g_ref_t = sel.final.gain * np.abs(full_transfer(setup.sims_grey[0], blur_only, bp, org))
+    delivered_base = np.round(inp.base) if inp.quantized else inp.base
+    p_real = cross_spectrum(inp.grey, inp.grey, block_px=bp, origins=ev_origins).s_ss
+    p_base = cross_spectrum(_grey(delivered_base), inp.grey, block_px=bp,
                             origins=ev_origins).s_ss
-    p_ref = cross_spectrum(_grey(np.round(refined) if quantized else refined), rg,
-                           block_px=block_px, origins=ev_origins).s_ss
-    plots = {"fy": fy, "fx": fx, "t_real": t_real, "t_real_var": t_var, "t_base": g_base_t,
-             "t_refined": g_ref_t, "gain_base": float(g_base), "gain_refined": float(fin.gain),
-             "coherence_base": cs_real.coherence,
+    p_ref = cross_spectrum(_grey(refined), inp.grey, block_px=bp, origins=ev_origins).s_ss
+    n = model.noise
+    plots = {"fy": cs_real.fy, "fx": cs_real.fx, "t_real": t_real, "t_real_var": t_var,
+             "t_base": g_base_t, "t_refined": g_ref_t, "gain_base": float(g_base),
+             "gain_refined": float(sel.final.gain), "coherence_base": cs_real.coherence,
              "p_real": p_real, "p_base": p_base, "p_refined": p_ref,
-             "spectral_error": (base_se, ref_se),
-             "noise_brightness": nf.brightness_dn, "noise_variance": nf.variance_dn2,
-             "noise_model": (nf.gain_dn, nf.read_var_dn2 + nf.quantization_dn2),
-             "noise_claimed": bool(noisy), "quantized": bool(quantized),
-             "q_ref": float(q_grid[0]), "q_base": float(q_base), "q_refined": float(fin.q)}
-    f, prof = radial_profile(t_real, fy, fx)
+             "spectral_error": (summary["baseline"]["spectral_error"],
+                                summary["refined"]["spectral_error"]),
+             "noise_brightness": n.brightness_dn if n else np.zeros(0),
+             "noise_variance": n.variance_dn2 if n else np.zeros(0),
+             "noise_model": ((n.gain_dn, n.read_var_dn2 + n.quantization_dn2) if n
+                             else (0.0, 0.0)),
+             "noise_claimed": bool(n is not None and n.claimed), "quantized": inp.quantized,
+             "q_ref": float(q_grid[0]), "q_base": inp.q_base, "q_refined": float(model.q)}
+    f, prof = radial_profile(t_real, cs_real.fy, cs_real.fx)
     plots["radial_f"] = f
     plots["radial_real"] = prof
-    return Diagnosis(summary=summary, real=r, baseline=base, refined=refined, valid=valid,
-                     maps=maps, regions=regions, labels=labels, plots=plots)
+    return plots
 
 
 def full_transfer(ref: np.ndarray, other: np.ndarray, block_px: int,

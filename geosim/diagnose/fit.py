@@ -211,7 +211,7 @@ def evaluate_chi2(data: SpectralData, *, q: float, gain: float,
 
 def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
                  q_starts: Sequence[float] = (1.5,), fix_q: float | None = None,
-                 max_starts: int = 24) -> TransferFit:
+                 max_starts: int = 24, start: TransferFit | None = None) -> TransferFit:
     """Least-squares fit of g, Q and the parameters of ``effect_names`` to ``data``.
 
     Multi-start over the catalogue's initial values (all directions) and ``q_starts``;
@@ -222,6 +222,9 @@ def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
     ----------
     fix_q
         Keep Q fixed at this value (e.g. the LV-calibrated baseline).
+    start
+        A fit of the same effects (e.g. on all blocks) to start from, alone: a single
+        start, for the many refits of block cross-validation.
     """
     specs = _pack_specs(effect_names)
     qlo, qhi = float(data.q_grid[0]), float(data.q_grid[-1])
@@ -235,6 +238,9 @@ def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
     gain0 = float(np.real(np.mean(data.t_real[:4]))) or 1.0
     grids = [s[4] for s in specs]
     starts = list(itertools.product(q_starts, *grids))[:max_starts]
+    if start is not None and all(n in start.effects for n in effect_names):
+        starts = [(start.q, *[start.effects[s[0]][s[1]] for s in specs])]
+        gain0 = start.gain
     best = None
     for st in starts:
         x0 = np.array([np.log(np.clip(st[0], qlo * 1.0001, qhi * 0.9999)),

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from geosim.diagnose.fit import RadiometryFit, fit_radiometry
+from geosim.physics.geometry import step_side
 
 __all__ = ["GainStep", "find_gain_step", "step_side", "MIN_STEP", "MIN_SIDE_FRACTION",
            "MIN_EXPLAINED"]
@@ -78,15 +79,6 @@ class GainStep:
         c = np.array([cols / 2.0, rows / 2.0]) + self.offset_px * n
         d = np.array([-n[1], n[0]]) * 0.5 * float(np.hypot(rows, cols))
         return [list(map(float, c - d)), list(map(float, c + d))]
-
-
-def step_side(shape: tuple[int, int], *, normal_deg: float, offset_px: float) -> np.ndarray:
-    """Bool mask (rows, cols) of the pixels beyond the line (projection > ``offset_px``)."""
-    rows, cols = shape
-    rr, cc = np.mgrid[0:rows, 0:cols]
-    th = np.radians(normal_deg)
-    proj = (cc + 0.5 - cols / 2.0) * np.cos(th) + (rr + 0.5 - rows / 2.0) * np.sin(th)
-    return proj > offset_px
 
 
 def _tukey(r: np.ndarray, scale: float, c: float = 4.685) -> np.ndarray:

@@ -1,19 +1,23 @@
 """Which effects does the evidence carry?
 
-Blur effects are chosen by forward selection on the measured transfer function:
-at each step every remaining candidate is fitted jointly with Q, the gain and
-the effects already chosen; the best is accepted only when
+Blur effects are chosen by forward selection on the measured transfer function,
+judged by **out-of-sample prediction**: neighbouring pixels (and neighbouring
+frequency bins of a windowed spectrum) are not independent, so a likelihood that
+counts them as independent overstates every effect. The scene's Welch blocks are
+grouped into spatial folds (quadrants); a model is fitted on all folds but one and
+scored (χ² of the transfer) on the held-out fold, for every fold in turn. At each step
+every remaining candidate is fitted jointly with Q, the gain and the effects already
+chosen; the best is accepted only when
 
-* its ΔBIC (BIC without − BIC with, residual scale from the larger model) is at
-  least ``MIN_DELTA_BIC`` = 10 ("very strong" on the Kass & Raftery scale), and
-* it improves the fit on data held out from fitting: fitted on the left half of
-  the scene and scored on the right half and vice versa, the χ² must drop by at
-  least ``MIN_HELDOUT_GAIN`` (relative).
+* it lowers the cross-validated χ² by at least ``MIN_CV_GAIN`` (relative),
+* its parameter is clearly away from its null (``EFFECT_SIZE``: e.g. a smear of at least
+  0.8 px, a detector at least 0.5 px wide) and not pinned at a bound, and
+* its ΔBIC on all blocks is at least ``MIN_DELTA_BIC`` (reported as evidence).
 
-Candidates whose ΔBIC is within ``AMBIGUITY_BIC`` = 6 of the winner's explain the
-data about as well; they are reported as indistinguishable alternatives instead
-of being silently dropped (typical pair: ``detector_integration`` and
-``atmospheric_blur``, both isotropic roll-offs that also trade off against Q).
+Effects of one family (isotropic roll-offs: ``detector_integration`` and
+``atmospheric_blur``; anisotropic: ``motion_smear`` and ``off_nadir_anisotropy``) are never
+claimed together: the best is claimed and those of its family that predict the held-out
+blocks within ``AMBIGUITY_CV`` of it are listed as alternatives with their scores.
 """
 
 from __future__ import annotations
@@ -32,8 +36,9 @@ from geosim.diagnose.fit import (
     fit_transfer,
 )
 
-__all__ = ["BlurSelection", "select_blur", "delta_bic", "select_radiometry",
-           "MIN_DELTA_BIC", "MIN_HELDOUT_GAIN", "AMBIGUITY_BIC"]
+__all__ = ["BlurSelection", "Alternative", "Step", "select_blur", "delta_bic",
+           "select_radiometry", "cv_chi2", "MIN_DELTA_BIC", "MIN_CV_GAIN", "AMBIGUITY_CV",
+           "EFFECT_SIZE", "BLUR_FAMILY"]
 
 MIN_DELTA_BIC = 10.0
 #: smallest radiometric correction worth claiming: RMS change of the image in some band, DN
@@ -41,7 +46,26 @@ MIN_RADIOMETRIC_DN = 1.0
 #: largest per-band gain still called haze (white-balance differences between the UAV camera
 #: and the satellite can lift one band slightly above 1 while path radiance adds offsets)
 HAZE_MAX_GAIN = 1.05
-MIN_HELDOUT_GAIN = 0.01
+#: relative drop of the cross-validated χ² an effect must bring (tuned on the development half)
+MIN_CV_GAIN = 0.10
+#: alternatives: same-family effects whose CV gain is within this fraction of the winner's
+AMBIGUITY_CV = 0.25
+#: (parameter, smallest or largest value that is clearly away from the effect's null)
+EFFECT_SIZE: dict[str, tuple[str, str, float]] = {
+    "detector_integration": ("pitch_px", ">=", 0.5),
+    "atmospheric_blur": ("f0_cyc_per_px", "<=", 1.0),
+    "motion_smear": ("length_px", ">=", 0.8),
+    "off_nadir_anisotropy": ("sigma_px", ">=", 0.3),
+    "resampling": ("native_pitch_px", ">=", 1.15),
+}
+#: blur families: effects one measured transfer function cannot tell apart reliably
+BLUR_FAMILY: dict[str, str] = {
+    "detector_integration": "isotropic", "atmospheric_blur": "isotropic",
+    "motion_smear": "anisotropic", "off_nadir_anisotropy": "anisotropic",
+    "resampling": "sampling",
+}
+#: kept for callers of the former held-out rule
+MIN_HELDOUT_GAIN = MIN_CV_GAIN
 AMBIGUITY_BIC = 6.0
 
 
@@ -53,13 +77,22 @@ def delta_bic(without: TransferFit, with_: TransferFit, n_values: int) -> float:
 
 
 @dataclass
+class Alternative:
+    """A same-family effect that predicts the held-out blocks about as well."""
+
+    name: str
+    cv_gain: float
+    params: dict[str, float]
+
+
+@dataclass
 class Step:
-    """One accepted effect with its evidence."""
+    """One accepted effect with its evidence (``heldout_gain`` = relative CV χ² drop)."""
 
     name: str
     delta_bic: float
     heldout_gain: float
-    alternatives: list[str]
+    alternatives: list[Alternative]
     fit: TransferFit
 
 
@@ -71,7 +104,9 @@ class BlurSelection:
     final: TransferFit
     steps: list[Step] = field(default_factory=list)
     tried: dict[str, float] = field(default_factory=dict)   # last ΔBIC of each candidate
+    cv_gain: dict[str, float] = field(default_factory=dict)  # last CV gain of each candidate
     at_bound: set[str] = field(default_factory=set)          # fits pinned at a bound
+    too_small: set[str] = field(default_factory=set)         # fits too close to the null
 
 
 def _at_bound(name: str, params: dict[str, float], rel: float = 0.01) -> bool:
@@ -85,65 +120,90 @@ def _at_bound(name: str, params: dict[str, float], rel: float = 0.01) -> bool:
     return False
 
 
-def _heldout_gain(a: SpectralData, b: SpectralData, base: Sequence[str], cand: Sequence[str],
-                  q_starts: Sequence[float]) -> float:
-    def score(names: Sequence[str]) -> float:
-        fa = fit_transfer(a, names, q_starts=q_starts)
-        fb = fit_transfer(b, names, q_starts=q_starts)
-        return (evaluate_chi2(b, q=fa.q, gain=fa.gain, effects=fa.effects)
-                + evaluate_chi2(a, q=fb.q, gain=fb.gain, effects=fb.effects))
-    s0 = score(base)
-    s1 = score(cand)
-    return float(1.0 - s1 / max(s0, 1e-300))
+def clearly_present(name: str, params: dict[str, float]) -> bool:
+    """The effect-size rule: the fitted parameter is clearly away from the null."""
+    rule = EFFECT_SIZE.get(name)
+    if rule is None or rule[0] not in params:
+        return True
+    key, op, limit = rule
+    return params[key] >= limit if op == ">=" else params[key] <= limit
 
 
-def select_blur(full: SpectralData, half_a: SpectralData | None, half_b: SpectralData | None, *,
+Folds = Sequence[tuple[SpectralData, SpectralData]]
+
+
+def cv_chi2(folds: Folds, names: Sequence[str], start: TransferFit) -> float:
+    """Σ over folds of the held-out χ² of a model fitted on the other folds."""
+    total = 0.0
+    for train, test in folds:
+        f = fit_transfer(train, names, q_starts=(start.q,), start=start)
+        total += evaluate_chi2(test, q=f.q, gain=f.gain, effects=f.effects)
+    return total
+
+
+def select_blur(full: SpectralData, folds: Folds | None = None, *,
                 candidates: Sequence[str] = BLUR_EFFECTS, q_starts: Sequence[float] = (1.5,),
                 max_effects: int = 3, min_delta_bic: float = MIN_DELTA_BIC,
-                min_heldout_gain: float = MIN_HELDOUT_GAIN) -> BlurSelection:
+                min_cv_gain: float = MIN_CV_GAIN) -> BlurSelection:
     """Forward selection of blur effects on the measured transfer function.
 
     Parameters
     ----------
     full
         Spectra over all usable blocks.
-    half_a, half_b
-        Spectra of the two halves of the scene for held-out validation (``None``: skip
-        the held-out test, e.g. on a scene too small to split).
+    folds
+        (training, held-out) spectra of a block cross-validation; ``None`` or empty: the
+        out-of-sample test is skipped (e.g. a scene too small to split) and only ΔBIC
+        and the effect-size rule decide.
     q_starts
         Starting values of Q for the fits.
     """
+    folds = list(folds or [])
     n_values = 2 * full.t_real.size
     null = fit_transfer(full, [], q_starts=q_starts)
     current: list[str] = []
     cur_fit = null
+    cur_cv = cv_chi2(folds, [], null) if folds else float("nan")
     sel = BlurSelection(null=null, final=null)
     while len(current) < max_effects:
-        remaining = [c for c in candidates if c not in current]
+        taken = {BLUR_FAMILY.get(c, c) for c in current}
+        remaining = [c for c in candidates
+                     if c not in current and BLUR_FAMILY.get(c, c) not in taken]
         if not remaining:
             break
         fits = {c: fit_transfer(full, current + [c], q_starts=(cur_fit.q, *q_starts))
                 for c in remaining}
         dbics = {c: delta_bic(cur_fit, f, n_values) for c, f in fits.items()}
         sel.tried.update(dbics)
+        ok = {}
         for c, f in fits.items():
             # a parameter pinned at a bound means the effect is standing in for a shape it
-            # does not have: never claim it under its name
+            # does not have; one at its null is no effect: never claim either by name
             if _at_bound(c, f.effects.get(c, {})):
                 sel.at_bound.add(c)
-                dbics[c] = -np.inf
-        best = max(dbics, key=dbics.__getitem__)
-        if dbics[best] < min_delta_bic:
+            elif not clearly_present(c, f.effects.get(c, {})):
+                sel.too_small.add(c)
+            elif dbics[c] >= min_delta_bic:
+                ok[c] = f
+        if not ok:
             break
-        gain = (_heldout_gain(half_a, half_b, current, current + [best], (cur_fit.q,))
-                if half_a is not None and half_b is not None else float("nan"))
-        if np.isfinite(gain) and gain < min_heldout_gain:
+        gains = {c: (1.0 - cv_chi2(folds, current + [c], f) / max(cur_cv, 1e-300)
+                     if folds else float("nan")) for c, f in ok.items()}
+        sel.cv_gain.update(gains)
+        best = (max(gains, key=gains.__getitem__) if folds
+                else max(ok, key=dbics.__getitem__))
+        if folds and gains[best] < min_cv_gain:
             break
-        alts = [c for c, d in dbics.items()
-                if c != best and d >= min_delta_bic and dbics[best] - d < AMBIGUITY_BIC]
+        fam = BLUR_FAMILY.get(best, best)
+        alts = [Alternative(c, float(gains[c]), dict(ok[c].effects[c])) for c in ok
+                if c != best and BLUR_FAMILY.get(c, c) == fam and folds
+                and gains[c] >= min_cv_gain and gains[best] - gains[c]
+                <= AMBIGUITY_CV * gains[best]]
         current.append(best)
         cur_fit = fits[best]
-        sel.steps.append(Step(best, dbics[best], gain, alts, cur_fit))
+        if folds:
+            cur_cv = cur_cv * (1.0 - gains[best])
+        sel.steps.append(Step(best, dbics[best], float(gains[best]), alts, cur_fit))
     sel.final = cur_fit
     return sel
 

@@ -58,11 +58,20 @@ def calibrate_q_lv(sim: QSimulator, real_grey: np.ndarray, valid: np.ndarray, *,
     :class:`~geosim.errors.CalibrationError` when the target is outside the bracket).
     """
     from geosim.degrade.calibrate import calibrate_q
+    from geosim.errors import CalibrationError
 
     target = laplacian_variance(real_grey, valid)
-    return float(calibrate_q(sim.uav, sim.valid, target, phi=sim.phi,
-                             q_min=max(q_min, sim.q_min), q_max=q_max,
-                             quantized=quantized, name="UAV image"))
+    lo = max(q_min, sim.q_min)
+    try:
+        return float(calibrate_q(sim.uav, sim.valid, target, phi=sim.phi, q_min=lo,
+                                 q_max=q_max, quantized=quantized, name="UAV image"))
+    except CalibrationError:
+        # noise (or compression) can make the scene look sharper than the sharpest
+        # simulation: that is a finding for the diagnosis, whose baseline is then the
+        # sharpest Q; anything else (flat scene, no overlap) is still an error
+        if np.isfinite(target) and target > laplacian_variance(luma(sim(lo)), valid):
+            return float(lo)
+        raise
 
 
 def _central_window(valid: np.ndarray, max_px: int) -> tuple[slice, slice]:

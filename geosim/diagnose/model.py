@@ -1,0 +1,204 @@
+"""Typed results of the diagnosis stages: the extended forward model and the claims.
+
+:class:`Registration` moves a simulation onto the real scene, :class:`CompressionFit`
+re-encodes it, :class:`ForwardModel` holds everything the refit found (Q, blur,
+seam, radiometry, noise) and renders the refined simulation; :class:`Claim` is one
+named effect with its evidence, as written to ``diagnosis.json``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from geosim.diagnose.coregister import AffineEstimate, ShiftEstimate, warp_by_field
+from geosim.diagnose.effects import get_effect
+from geosim.diagnose.seam import GainStep
+from geosim.physics import otf
+from geosim.physics.geometry import fourier_shift
+
+__all__ = ["Registration", "CompressionFit", "RadiometryChoice", "NoiseEstimate",
+           "ForwardModel", "Claim", "blur_apply", "NON_LSI"]
+
+#: blur effects whose forward model is not shift-invariant (applied with ``apply``, so that
+#: the refined simulation carries their aliasing, not only their average transfer)
+NON_LSI = ("resampling",)
+
+
+def blur_apply(img: np.ndarray, effects: dict[str, dict[str, float]]) -> np.ndarray:
+    """Apply blur effects (on the 0.5 m grid) to a bands-first image."""
+    out = np.asarray(img, float)
+    lsi = {n: p for n, p in effects.items() if n not in NON_LSI}
+    if lsi:
+        tr = otf.compose(*[(lambda fy, fx, n=n, p=p: get_effect(n).transfer(fy, fx, **p))
+                           for n, p in lsi.items()])
+        out = otf.apply_transfer(out, tr)
+    for n, p in effects.items():
+        if n in NON_LSI:
+            out = get_effect(n).apply(out, **p)
+    return out
+
+
+@dataclass
+class Registration:
+    """How the simulation is moved onto the real scene (pixels of the 0.5 m grid)."""
+
+    estimate: ShiftEstimate
+    affine: AffineEstimate
+    applied: bool
+    shift_px: tuple[float, float]
+    whole_px: tuple[float, float]
+    field_px: tuple[np.ndarray, np.ndarray] | None = None
+    fill_idx: np.ndarray | None = None
+
+    def move(self, sim: np.ndarray) -> np.ndarray:
+        """A bands-first simulation, invalid pixels filled from the nearest valid, moved."""
+        s = np.asarray(sim, float)
+        s = s[np.newaxis] if s.ndim == 2 else s
+        if self.fill_idx is not None:
+            s = s[:, self.fill_idx[0], self.fill_idx[1]]
+        if self.field_px is not None:
+            return warp_by_field(s, *self.field_px)
+        return fourier_shift(s, self.shift_px) if self.applied else s
+
+    def params(self, gsd_m: float) -> dict[str, Any]:
+        """``misregistration`` parameters for diagnosis.json."""
+        if self.field_px is not None:
+            a = self.affine
+            d = (a.shift_px[0] + self.whole_px[0], a.shift_px[1] + self.whole_px[1])
+            return {"shift_px": [d[0], d[1]], "shift_m": [d[0] * gsd_m, -d[1] * gsd_m],
+                    "rotation_deg": a.rotation_deg, "scale": a.scale,
+                    "local_residual_px": a.residual_px, "at_px": list(a.centre_px)}
+        d = self.estimate.shift_px
+        return {"shift_px": [d[0], d[1]], "shift_m": list(self.estimate.shift_m(gsd_m))}
+
+
+@dataclass
+class CompressionFit:
+    """JPEG re-encoding found from block-edge steps in the residual."""
+
+    quality: int
+    offset_px: tuple[int, int]
+    test: dict[str, float]
+
+    def apply(self, img: np.ndarray) -> np.ndarray:
+        return get_effect("compression").apply(img, quality=self.quality,
+                                               block_offset_px=self.offset_px)
+
+
+@dataclass
+class RadiometryChoice:
+    """``haze`` or ``colour_response`` (or neither) with parameters and evidence."""
+
+    name: str | None
+    params: dict[str, Any]
+    sigmas: dict[str, Any]
+    delta_bic: float
+    bic: dict[str, float]
+
+    def apply(self, img: np.ndarray) -> np.ndarray:
+        if self.name == "haze":
+            return get_effect("haze").apply(img, **self.params)
+        if self.name == "colour_response":
+            out = img * np.asarray(self.params["gain"])[:, None, None]
+            if "offset_dn" in self.params:
+                out = out + np.asarray(self.params["offset_dn"])[:, None, None]
+            return out
+        return img
+
+
+@dataclass
+class NoiseEstimate:
+    """Noise variance a·s + b (per band, DN²) and the evidence for it.
+
+    ``white_var_dn2`` is the per-band variance of the white, incoherent part of the
+    residual at high frequencies (rounding removed); ``whiteness`` the ratio of the
+    incoherent power at mid to high frequencies (1 for white noise).
+    """
+
+    gain_dn: float
+    read_var_dn2: float
+    gain_sigma: float
+    read_sigma: float
+    white_var_dn2: float
+    whiteness: float
+    claimed: bool
+    quantization_dn2: float
+    brightness_dn: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    variance_dn2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    mean_variance_sigma: float = float("inf")
+    delta_bic: float = 0.0
+
+
+@dataclass
+class ForwardModel:
+    """The extended forward model the diagnosis refits."""
+
+    q: float
+    blur: dict[str, dict[str, float]]
+    registration: Registration
+    compression: CompressionFit | None = None
+    seam: GainStep | None = None
+    radiometry: RadiometryChoice | None = None
+    noise: NoiseEstimate | None = None
+
+    def sim_at(self, simulate: Callable[[float], np.ndarray], q: float | None = None
+               ) -> np.ndarray:
+        """Paper's model at ``q`` (default: the model's), moved and compressed."""
+        s = self.registration.move(simulate(self.q if q is None else q))
+        return self.compression.apply(s) if self.compression is not None else s
+
+    def blurred(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
+        """With the blur effects and the seam correction (no radiometry)."""
+        m = blur_apply(self.sim_at(simulate), self.blur)
+        if self.seam is not None:
+            m = m * np.where(self.seam.side, self.seam.factor, 1.0)
+        return m
+
+    def deterministic(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
+        """The expected refined image (no noise realisation)."""
+        m = self.blurred(simulate)
+        return self.radiometry.apply(m) if self.radiometry is not None else m
+
+    def delivered(self, simulate: Callable[[float], np.ndarray], rng: np.random.Generator,
+                  *, quantized: bool) -> np.ndarray:
+        """As the product is delivered: with a noise realisation, whole DN if quantized."""
+        m = self.deterministic(simulate)
+        if self.noise is not None and self.noise.claimed:
+            m = get_effect("sensor_noise").apply(m, rng=rng, gain_dn=self.noise.gain_dn,
+                                                 read_var_dn2=self.noise.read_var_dn2)
+        return np.round(m) if quantized else m
+
+    def without(self, **changes: Any) -> ForwardModel:
+        return replace(self, **changes)
+
+
+@dataclass
+class Claim:
+    """One named effect in diagnosis.json."""
+
+    name: str
+    params: dict[str, Any]
+    uncertainty: dict[str, Any]
+    delta_bic: float
+    heldout_gain: float | None = None
+    alternatives: list[dict[str, Any]] = field(default_factory=list)
+    rmse_after: float = float("nan")
+    spectral_error_after: float = float("nan")
+
+    def to_json(self) -> dict[str, Any]:
+        e = get_effect(self.name)
+        out: dict[str, Any] = {
+            "name": self.name, "params": self.params, "uncertainty": self.uncertainty,
+            "explanation": e.describe(self.params), "signature": e.signature,
+            "delta_bic": self.delta_bic, "rmse_after": self.rmse_after,
+            "spectral_error_after": self.spectral_error_after}
+        if self.heldout_gain is not None:
+            out["heldout_gain"] = self.heldout_gain
+        if self.alternatives:
+            out["alternatives"] = self.alternatives
+            out["indistinguishable_from"] = [a["name"] for a in self.alternatives]
+        return out
