@@ -4,9 +4,11 @@ physics the model left out, and how much the fit improves once it is modelled.
 Modules: :mod:`~geosim.diagnose.spectra` (Welch cross-spectra, transfer function,
 coherence, spectral error), :mod:`~geosim.diagnose.coregister` (sub-pixel shift),
 :mod:`~geosim.diagnose.effects` (the catalogue), :mod:`~geosim.diagnose.fit`
-(joint Q + effects fit), :mod:`~geosim.diagnose.select` (evidence: ΔBIC and held-out),
+(joint Q + effects fit), :mod:`~geosim.diagnose.select` (evidence: block
+cross-validation and effect size), :mod:`~geosim.diagnose.noise` (white noise floor),
+:mod:`~geosim.diagnose.model` (typed forward model and claims),
 :mod:`~geosim.diagnose.simulate` (the paper's model at any Q),
 :mod:`~geosim.diagnose.locate` (maps and regions), :mod:`~geosim.diagnose.engine`
-(the whole diagnosis on arrays), :mod:`~geosim.diagnose.report` and
+(the whole diagnosis on arrays, in stages), :mod:`~geosim.diagnose.report` and
 :mod:`~geosim.diagnose.steps` (files).
 """

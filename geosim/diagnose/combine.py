@@ -6,9 +6,10 @@ flights, while misregistration (each flight's own georeference or alignment erro
 and scene change (each flight's own day, sun and cattle) belong to one flight.
 
 Rule: **majority of flights.** A satellite effect is claimed when a strict majority of
-the diagnosed flights claims it, each by its own evidence test (ΔBIC ≥ 10 and a gain on
-held-out data). Effects that a flight reports as indistinguishable from each other
-(e.g. ``motion_smear`` and ``off_nadir_anisotropy``) vote together; the name claimed
+the diagnosed flights claims it, each by its own evidence test (held-out blocks
+predicted better, effect clearly away from its null). Effects that a flight reports as
+indistinguishable from each other (e.g. ``motion_smear`` and ``off_nadir_anisotropy``)
+vote together; the name claimed
 most often wins and the others are reported as indistinguishable.
 
 Why not a joint ΔBIC summed over flights? The flights are not independent data: every

@@ -182,15 +182,19 @@ def _markdown(s: dict[str, Any]) -> str:
                  f"and its spectral error {b['spectral_error']:.3f} (RMS of log10 power ratio).")
     lines.append("")
     if not s["effects"]:
-        lines.append("**No missing physics was found**: no effect improved the fit by enough "
-                     "(ΔBIC ≥ 10 and better on held-out data) to be claimed.")
+        lines.append("**No missing physics was found**: no effect improved the prediction of "
+                     "held-out blocks by enough (block cross-validation), with its parameter "
+                     "clearly away from its null, to be claimed.")
     else:
         lines.append("## Physics the model left out (in the order they were added)")
         lines.append("")
         for e in s["effects"]:
             params = ", ".join(f"{k} = {_f(v)}" for k, v in e["params"].items())
             lines.append(f"- **{e['name']}** ({params}). {e['explanation'].split(' Fitted:')[0]} "
-                         f"Evidence: ΔBIC = {_f(e['delta_bic'])}; after adding it the RMSE is "
+                         f"Evidence: ΔBIC = {_f(e['delta_bic'])}"
+                         + (f", held-out χ² {100 * e['heldout_gain']:.0f} % lower"
+                            if e.get("heldout_gain") is not None else "")
+                         + "; after adding it the RMSE is "
                          f"{e['rmse_after']:.2f} DN and the spectral error "
                          f"{e['spectral_error_after']:.3f}.")
             if e.get("indistinguishable_from"):
@@ -207,8 +211,8 @@ def _markdown(s: dict[str, Any]) -> str:
     weak = {k: v for k, v in s.get("candidates_delta_bic", {}).items()
             if k not in claimed and v is not None and v >= 2.0}
     if weak:
-        lines.append("\nWeak evidence, not claimed (ΔBIC ≥ 2 but < 10, or not confirmed on "
-                     "held-out data): "
+        lines.append("\nWeak evidence, not claimed (ΔBIC ≥ 2 but < 10, too small, or not "
+                     "confirmed on held-out blocks): "
                      + ", ".join(f"{k} (ΔBIC {v:.1f})" for k, v in weak.items())
                      + ". Part of their blur may be absorbed in the refitted Q.")
     if s.get("ambiguities"):
