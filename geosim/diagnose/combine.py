@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from geosim.diagnose.effects import get_effect
+from geosim.diagnose.select import BLUR_FAMILY
 
 __all__ = ["combine_flights", "combine_values", "PER_FLIGHT_EFFECTS"]
 
@@ -46,6 +47,11 @@ PER_FLIGHT_EFFECTS = ("misregistration", "scene_change", "exposure_seam")
 def _median(values: Sequence[float]) -> float:
     v = [float(x) for x in values if x is not None and np.isfinite(x)]
     return float(np.median(v)) if v else float("nan")
+
+
+def _finite_median(values: Sequence[Any]) -> float | None:
+    m = _median(values)
+    return m if np.isfinite(m) else None
 
 
 def _spread(values: Sequence[float]) -> float:
@@ -197,7 +203,10 @@ def combine_flights(docs: Mapping[str, Mapping[str, Any]], *, reference: str
         rank = {g: (len(fl), _median([claims[f][g]["delta_bic"] for f in fl]))
                 for g, fl in exact.items()}
         order = sorted(exact, key=rank.__getitem__, reverse=True)
-        chosen = [order[0]] + [g for g in order[1:] if len(exact[g]) >= need]
+        # never two of one blur family (they are one finding under two names)
+        fam0 = BLUR_FAMILY.get(order[0], order[0])
+        chosen = [order[0]] + [g for g in order[1:] if len(exact[g]) >= need
+                               and BLUR_FAMILY.get(g, g) != fam0]
         for g in chosen:
             dbic = {f: (claims[f][g]["delta_bic"] if g in claims[f] else
                         docs[f].get("candidates_delta_bic", {}).get(g)) for f in ids}
@@ -206,6 +215,14 @@ def combine_flights(docs: Mapping[str, Mapping[str, Any]], *, reference: str
             alts = sorted(group - set(chosen))
             if alts:
                 entry["indistinguishable_from"] = alts
+                entry["alternatives"] = [
+                    {"name": a, "votes": f"{len(exact.get(a, []))}/{n}",
+                     "heldout_gain": _finite_median([x.get("heldout_gain") for f in ids
+                                              for x in claims[f].get(g, {}).get(
+                                                  "alternatives", []) if x.get("name") == a]
+                                             + [claims[f][a].get("heldout_gain")
+                                                for f in exact.get(a, [])])}
+                    for a in alts]
                 ambiguities.append({"claimed": g, "alternatives": alts, "note": (
                     f"{g} and {', '.join(alts)} explain the measured transfer function about "
                     f"equally well in the flights that claimed them (votes: "

@@ -70,6 +70,11 @@ def calibrate_q_lv(sim: QSimulator, real_grey: np.ndarray, valid: np.ndarray, *,
         # simulation: that is a finding for the diagnosis, whose baseline is then the
         # sharpest Q; anything else (flat scene, no overlap) is still an error
         if np.isfinite(target) and target > laplacian_variance(luma(sim(lo)), valid):
+            import warnings
+
+            warnings.warn(f"the satellite scene looks sharper (LV {target:.4g}) than the "
+                          f"sharpest simulation (Q = {lo:g}); the diagnosis baseline is "
+                          f"Q = {lo:g} (noise or compression raise the LV)", stacklevel=2)
             return float(lo)
         raise
 
