@@ -90,3 +90,21 @@ def test_benchmark_scoring_counts_exact_names():
     assert s["precision"] == pytest.approx(0.5) and s["recall"] == 1.0
     assert s["controls_clean"] == 1 and s["refined_le_half_baseline"] == 1
     assert s["refined_above_baseline"] == 1
+
+
+@pytest.mark.parametrize("index", [10, 19])
+def test_fixed_benchmark_subset_on_real_imagery(realdata, samples_dir, index):
+    """Two fixed cases of benchmarks/diagnose_independent.py (a control on an SJER 2018
+    tile at Q 1.15; haze on the Australian woodland at Q 2.27): exact names, and the refined
+    spectral error (the benchmark's own measure) at most half the baseline's with effects,
+    never above it."""
+    import diagnose_independent as bench
+
+    # the benchmark's own source list (its cases are numbered over it)
+    sources = gen.pick_sources(gen.list_sources(realdata, samples_dir))
+    case = gen.make_case(index, sources)
+    row = bench.diagnose_case(case)
+    assert set(row["claimed"]) == set(case.truth), (case.truth, row["claimed"])
+    assert row["se_refined"] <= row["se_base"] + 1e-9
+    if case.truth:
+        assert row["se_refined"] <= 0.5 * row["se_base"]
