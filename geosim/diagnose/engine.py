@@ -257,10 +257,16 @@ def _affine_residual(model_g: np.ndarray, real_g: np.ndarray, mask: np.ndarray) 
 
 
 def _changed_regions(inp: Inputs, model_grey: np.ndarray, *, ratio: float,
-                     floor_dn2: float = MIN_REGION_DN2
+                     floor_dn2: float = MIN_REGION_DN2, affine: bool = True
                      ) -> tuple[list[locate.Region], np.ndarray, np.ndarray, np.ndarray]:
-    """Regions of significant residual energy: (regions, labels, energy map, inner mask)."""
-    e = _affine_residual(model_grey, inp.grey, inp.valid)
+    """Regions of significant residual energy: (regions, labels, energy map, inner mask).
+
+    ``affine``: match the model's grey level to the scene first (the first pass, before
+    the radiometry is fitted); the final pass uses the refined model's residual as it is,
+    so that large areas the radiometry does not explain show up as ``global`` regions.
+    """
+    e = (_affine_residual(model_grey, inp.grey, inp.valid) if affine
+         else inp.grey - model_grey)
     inner = ndimage.binary_erosion(inp.valid, np.ones((5, 5)), border_value=0)
     energy = locate.residual_energy_map(np.where(inner, e, 0))
     expected = max(float(np.median(energy[inner])), floor_dn2)
@@ -458,7 +464,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
     regions, labels, energy, inner = _changed_regions(
         inp, _grey(model.deterministic(simulate)), ratio=6.0,
-        floor_dn2=max(MIN_REGION_DN2, 0.447 * noise_var))
+        floor_dn2=max(MIN_REGION_DN2, 0.447 * noise_var), affine=False)
     eval_mask = inner & ~locate.regions_mask(labels, regions, kind=None)
     ev_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=eval_mask)
     if len(ev_origins) < 4:
