@@ -337,8 +337,8 @@ def _check_crs(value: str, src: Path) -> str:
 
 
 def _check_raster_has_crs(path: Path, key: str, src: Path) -> None:
+    from geosim.io.bands import check_raster_bands
     from geosim.io.raster import open_raster
-    from geosim.validate import check_raster_bands
 
     with open_raster(path, what=f"{src}: {key}") as ds:
         check_raster_bands(ds, f"{src}: {key}")

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from geosim.errors import ConfigError, ExtentError, OutputError, RasterError
+from geosim.io.bands import check_raster_bands
 
 if TYPE_CHECKING:
     import rasterio
@@ -165,29 +166,6 @@ def check_out_dir(site: SiteConfig, out: str | os.PathLike[str]) -> Path:
 
 
 # ------------------------------------------------------------------------- rasters
-
-
-def check_raster_bands(ds: rasterio.DatasetReader, what: str) -> None:
-    """Refuse a band layout or data type the pipeline cannot use.
-
-    Supported: 1 image band (grey; luma) or 3 or more (R, G, B first), each optionally
-    with an alpha band; all image bands of one supported data type.
-    """
-    from geosim.io.raster import image_band_indexes
-    from geosim.prepare.reproject import SUPPORTED_DTYPES
-
-    bands = image_band_indexes(ds)
-    if not bands:
-        raise RasterError(f"{what}: {ds.name} has no image band (only alpha); give an "
-                          "RGB(A) or grey raster")
-    if len(bands) == 2:
-        raise RasterError(
-            f"{what}: {ds.name} has 2 image bands and no band tagged alpha; give grey (1 "
-            "band), grey+alpha (tag band 2: gdal_edit.py -colorinterp_2 alpha) or RGB(A)")
-    dtypes = sorted({ds.dtypes[b - 1] for b in bands})
-    if len(dtypes) != 1 or dtypes[0] not in SUPPORTED_DTYPES:
-        raise RasterError(f"{what}: {ds.name} has data type(s) {dtypes}; use one of "
-                          f"{', '.join(SUPPORTED_DTYPES)} for all bands")
 
 
 def _check_windows(ds: rasterio.DatasetReader) -> Iterator[rasterio.windows.Window]:

@@ -10,21 +10,9 @@ import geosim
 ROOT = Path(geosim.__file__).parent
 MAX_FUNCTION_LINES = 150
 #: Functions allowed over the limit, by name, each with the reason.
-EXEMPT_LONG_FUNCTIONS: dict[str, str] = {
-    "geosim/diagnose/engine.py:diagnose_arrays":
-        "being split into locate/attribute/model/refit by the diagnosis work of issue #11",
-}
+EXEMPT_LONG_FUNCTIONS: dict[str, str] = {}
 #: Import cycles allowed, each with the reason; remove an entry when its cycle is gone.
-KNOWN_CYCLES: dict[frozenset[str], str] = {
-    frozenset({"geosim.diagnose.effects", "geosim.diagnose.seam", "geosim.diagnose.fit"}):
-        "effects -> seam -> fit -> effects, being removed by the diagnosis work of issue #11",
-    frozenset({"geosim.align.fourier_mellin", "geosim.align.refine"}):
-        "fourier_mellin <-> refine (from the one-refinement-loop work of issue #11)",
-    frozenset({"geosim.config", "geosim.validate", "geosim.labels.sources"}):
-        "config.load_site -> validate.check_raster_bands; validate.preflight -> "
-        "labels.sources -> config (function-level imports, from issue #12's pre-flight "
-        "checks): move check_raster_bands out of validate to break it",
-}
+KNOWN_CYCLES: dict[frozenset[str], str] = {}
 
 
 def _modules() -> dict[str, Path]:

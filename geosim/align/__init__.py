@@ -9,12 +9,12 @@ reference pixels to moving pixels; rotation is counter-clockwise as displayed.
 
 from geosim.align.fourier_mellin import (
     SimilarityTransform,
-    fit_similarity,
     register_similarity,
     similarity_matrix,
 )
 from geosim.align.local import LocalShiftField, local_shift_field
 from geosim.align.phasecorr import DEFAULT_MIN_CONFIDENCE, PhaseCorrelation, phase_correlate
+from geosim.align.refine import fit_similarity
 
 __all__ = [
     "DEFAULT_MIN_CONFIDENCE",

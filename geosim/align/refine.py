@@ -19,7 +19,8 @@ import numpy as np
 
 from geosim.align.local import shifts_in_windows
 
-__all__ = ["REFINE_TOLERANCE_PX", "Refinement", "fit_translation", "refine_with_windows",
+__all__ = ["REFINE_TOLERANCE_PX", "Refinement", "fit_similarity", "fit_translation",
+           "refine_with_windows",
            "similarity_significance"]
 
 #: The refinement stops when its update moves no image corner by more than this (px).
@@ -149,8 +150,6 @@ def refine_with_windows(reference: np.ndarray, valid_reference: np.ndarray, warp
     -------
     Refinement
     """
-    from geosim.align.fourier_mellin import fit_similarity
-
     h, w = reference.shape
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
     half = (window_px - 1) / 2.0
@@ -195,3 +194,52 @@ def refine_with_windows(reference: np.ndarray, valid_reference: np.ndarray, warp
             break
     return Refinement(matrix=m, model=chosen or "translation", rms_px=rms, n_windows=n_used,
                       support=support, significance=signif, effect_px=effect)
+
+
+def fit_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, *,
+                   huber_px: float = 0.5, iterations: int = 5
+                   ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Robust weighted least-squares similarity mapping ``src`` points to ``dst``.
+
+    Parameters
+    ----------
+    src, dst : numpy.ndarray
+        ``(n, 2)`` point coordinates ``(x, y)`` in pixels, ``n >= 2``.
+    weights : numpy.ndarray
+        ``(n,)`` non-negative prior weights (e.g. confidences).
+    huber_px : float
+        Minimum Huber threshold in pixels (the threshold used is the larger of
+        this and 2 × the median residual).
+    iterations : int
+        Reweighting iterations.
+
+    Returns
+    -------
+    tuple
+        ``(matrix, rms_px, residuals_px)``: ``(3, 3)`` homogeneous similarity
+        ``[[a, b, tx], [-b, a, ty], [0, 0, 1]]`` (``a = s cos θ``, ``b = s sin θ``),
+        the robustly weighted RMS residual in pixels and the ``(n,)`` residual
+        distances in pixels.
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    w0 = np.asarray(weights, dtype=float)
+    centre = np.average(src, axis=0, weights=w0)
+    p = src - centre
+    n = len(p)
+    a_mat = np.zeros((2 * n, 4))
+    a_mat[0::2] = np.column_stack([p[:, 0], p[:, 1], np.ones(n), np.zeros(n)])
+    a_mat[1::2] = np.column_stack([p[:, 1], -p[:, 0], np.zeros(n), np.ones(n)])
+    rhs = dst.reshape(-1)
+    w = w0.copy()
+    for _ in range(max(1, iterations)):
+        sw = np.sqrt(np.repeat(w, 2))
+        params, *_ = np.linalg.lstsq(a_mat * sw[:, None], rhs * sw, rcond=None)
+        res = np.hypot(*(a_mat @ params - rhs).reshape(-1, 2).T)
+        k = max(huber_px, 2.0 * float(np.median(res)))
+        w = w0 * np.where(res <= k, 1.0, k / np.maximum(res, 1e-12))
+    a, b, tx, ty = params
+    lin = np.array([[a, b], [-b, a]])
+    t = np.array([tx, ty]) - lin @ centre
+    rms = float(np.sqrt(np.sum(w * res ** 2) / max(np.sum(w), 1e-12)))
+    return np.array([[a, b, t[0]], [-b, a, t[1]], [0.0, 0.0, 1.0]]), rms, res
