@@ -340,6 +340,83 @@ def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return out[0] if arr.ndim == 2 else out
 
 
+# ----------------------------------------------------------------------- band-limited reduction
+
+#: Largest relative leak of an alias into a kept DCT coefficient a pyramid level may add.
+ALIAS_TOLERANCE = 5e-4
+
+# Binomial kernels of the levels, centred between samples 1 and 2 (anchor 1 / 2): sampled at
+# even outputs they are the block-centre filters [1, 3, 3, 1]/8 and [1, 5, 10, 10, 5, 1]/32.
+_BINOMIAL_4_INT = np.array([1, 3, 3, 1], np.float32)  # times 8: exact in int16 from uint8
+_BINOMIAL_6 = np.array([1, 5, 10, 10, 5, 1], np.float32) / 32
+
+
+def _level_power(data: np.ndarray, f_cut: float) -> int:
+    """Order p of the level's filter cos^p(π f) (0 = no level): p = 3 on uint8, else 5."""
+    leak = np.tan(np.pi * f_cut)
+    if data.dtype == np.uint8 and leak ** 3 <= ALIAS_TOLERANCE:
+        return 3
+    if leak ** 5 <= ALIAS_TOLERANCE:
+        return 5
+    return 0
+
+
+def reduce_band_limited(band: np.ndarray, q_phi: float
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Halve a band while keeping its DCT-II coefficients below the cutoff 1/(Qφ).
+
+    Each level filters with the binomial kernel [1, 3, 3, 1]/8 or
+    [1, 5, 10, 10, 5, 1]/32 (``BORDER_REFLECT``) centred on the middle of each
+    2 × 2 block of pixels and keeps one value per block: transfer
+    G(f) = cos^p(π f), p = 3 or 5. The blocks' centres keep the half-
+    sample symmetry of the DCT-II at both ends (even lengths only), so the
+    orthonormal DCT-II coefficient k of the level is exactly
+    (G(k/2N) X_k − G((N − k)/2N) X_{N−k}) / √2 for a length-N input with
+    coefficients X. Below the cutoff the alias term is at most tan^p(π f)
+    ≤ :data:`ALIAS_TOLERANCE` of X_{N−k}; levels are added while that holds.
+    uint8 bands take the first level in exact int16 arithmetic.
+
+    Parameters
+    ----------
+    band
+        (rows, cols) image, DN.
+    q_phi
+        Q × φ: the optics cutoff is 1 / (Q φ) cycles per pixel of ``band``.
+
+    Returns
+    -------
+    reduced : numpy.ndarray
+        The last level (float32), or ``band`` itself when no level is possible.
+    gain_rows, gain_cols : numpy.ndarray
+        Per axis, for coefficient k of the reduced band's DCT-II: the factor
+        (product of G(k/2N) / √2 over levels) that divides it into X_k.
+    """
+    data = np.asarray(band)
+    gains = [np.ones(data.shape[0]), np.ones(data.shape[1])]
+    f_cut = 1.0 / q_phi
+    while all(n % 2 == 0 and n >= 16 for n in data.shape):
+        power = _level_power(data, f_cut)
+        if power == 0:
+            break
+        rows, cols = data.shape
+        if power == 3:  # integer sums of 64 uint8 values: exact in int16
+            smooth = cv2.sepFilter2D(data, cv2.CV_16S, _BINOMIAL_4_INT, _BINOMIAL_4_INT,
+                                     anchor=(1, 1), borderType=cv2.BORDER_REFLECT)
+            halved = smooth[::2, ::2].astype(np.float32)
+            halved *= 1.0 / 64.0
+        else:
+            smooth = cv2.sepFilter2D(data.astype(np.float32, copy=False), cv2.CV_32F,
+                                     _BINOMIAL_6, _BINOMIAL_6, anchor=(2, 2),
+                                     borderType=cv2.BORDER_REFLECT)
+            halved = np.ascontiguousarray(smooth[::2, ::2])
+        for axis, n in enumerate((rows, cols)):
+            k = np.arange(n // 2)
+            gains[axis] = (gains[axis][:n // 2] * np.cos(np.pi * k / (2.0 * n)) ** power
+                           / np.sqrt(2.0))
+        data, f_cut = halved, 2.0 * f_cut
+    return (band if data is band else data), gains[0], gains[1]
+
+
 # ----------------------------------------------------------------------- fast path
 
 class SpectralDegrader:
@@ -390,8 +467,13 @@ class SpectralDegrader:
         self._basis_cols = _resample_basis(cols, self.out_shape[1], self.n_coef[1], self.phi)
 
     def _truncated_dct(self, band: np.ndarray) -> np.ndarray:
-        rows, _ = self.shape
+        rows, cols = self.shape
         k_r, k_c = self.n_coef
+        reduced, gain_rows, gain_cols = reduce_band_limited(band, self.q_min * self.phi)
+        if reduced is not band:  # coefficients of the half-resolution pyramid level
+            coef = scipy.fft.dctn(reduced, type=2, norm="ortho", workers=self._workers)
+            return (coef[:k_r, :k_c] / np.outer(gain_rows[:k_r], gain_cols[:k_c])
+                    ).astype(np.float32)
         partial = np.empty((rows, k_c), np.float32)
         for r0 in range(0, rows, _ROW_BLOCK):
             block = band[r0:r0 + _ROW_BLOCK].astype(np.float32)
