@@ -27,10 +27,13 @@ Two methods compute the same numbers:
     neighbourhood of the blurred image per output pixel, the output is
     ``A_rows @ (C · H) @ A_cols.T`` where ``C`` are the kept coefficients, ``H``
     the OTF and ``A`` the inverse-DCT basis at the 4 source rows (columns) of
-    each output pixel, weighted by OpenCV's cubic coefficients. The forward DCT
-    along rows is done in row blocks (float32), keeping only the needed
-    coefficients, so memory is O(N · K) instead of O(N · M). Agrees with the
-    reference to ~1e-4 DN before rounding.
+    each output pixel, weighted by OpenCV's cubic coefficients. The kept
+    coefficients come from a band-limited half-resolution pyramid
+    (:func:`reduce_band_limited`: binomial filter + 2 × 2 decimation, whose effect
+    on every kept coefficient is a known gain, divided out; the aliases it folds
+    in weigh ≤ :data:`ALIAS_TOLERANCE`), so the transform runs on a 4× or 16×
+    smaller image; sizes the pyramid cannot halve use row-blocked full-length
+    DCTs. Agrees with the reference to ~3e-5 DN before rounding.
 
 No-data. Invalid UAV pixels are first filled with a smooth continuation of the
 valid ones (:func:`fill_invalid`, a pull–push pyramid), then the filled image is
