@@ -356,6 +356,8 @@ _BINOMIAL_6 = np.array([1, 5, 10, 10, 5, 1], np.float32) / 32
 
 def _level_power(data: np.ndarray, f_cut: float) -> int:
     """Order p of the level's filter cos^p(π f) (0 = no level): p = 3 on uint8, else 5."""
+    if not 0.0 < f_cut < 0.25:  # kept coefficients must lie in the level's lower half
+        return 0
     leak = np.tan(np.pi * f_cut)
     if data.dtype == np.uint8 and leak ** 3 <= ALIAS_TOLERANCE:
         return 3
