@@ -190,11 +190,8 @@ def _engine(workers: int | None):
         return contextlib.nullcontext()
     from geosim import engine
 
-    for name in ("local_cluster", "dask_engine", "LocalDaskEngine", "DaskEngine"):
-        factory = getattr(engine, name, None)
-        if factory is not None:
-            return engine.using(factory(workers))
-    raise RuntimeError("geosim.engine has no Dask engine yet")
+    # a local cluster of `workers` single-threaded processes, active (and closed) in the block
+    return engine.open_engine(workers)
 
 
 def dask_available() -> str | None:
@@ -202,8 +199,7 @@ def dask_available() -> str | None:
     sys.path.insert(0, str(ROOT))
     from geosim import engine
 
-    names = ("local_cluster", "dask_engine", "LocalDaskEngine", "DaskEngine")
-    if any(hasattr(engine, n) for n in names):
+    if hasattr(engine, "open_engine"):
         return None
     return ("geosim.engine offers no Dask engine on this branch (the engine work is done in "
             "parallel); the 1-vs-2-worker columns are skipped")

@@ -56,3 +56,7 @@ class OutputError(GeosimError, OSError):
 class GeosimWarning(UserWarning):
     """Something geosim repaired or assumed that the user should check (e.g. a paddock
     polygon made valid)."""
+
+
+class EngineError(GeosimError, RuntimeError):
+    """The Dask cluster could not be started or reached, or a worker was lost."""

@@ -282,6 +282,7 @@ def _ordered(record: dict[str, Any]) -> dict[str, Any]:
 
 def _finish(run: RunDir, record: dict[str, Any], status: str, start: float) -> None:
     record["status"] = status
+    record["engine"] = engine.active().describe()  # now with the workers that ran tasks
     record["seconds"] = round(time.perf_counter() - start, 3)
     record["finished"] = _now()
     write_json(run.run_json, _ordered(record))

@@ -12,6 +12,9 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]
 SAMPLES_DIR = PROJECT_ROOT / "data" / "samples"
 REALDATA_DIR = Path(os.environ.get("GEOSIM_REALDATA",
                                    PROJECT_ROOT.parent / "shared" / "realdata"))
+# Commands run in-process in the tests unless a test asks for a cluster (--workers N):
+# a Dask cluster per CLI call would only slow the suite (tests/test_engine*.py cover it).
+os.environ.setdefault("GEOSIM_WORKERS", "1")
 
 
 @pytest.fixture(scope="session")

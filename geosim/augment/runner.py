@@ -24,11 +24,11 @@ import os
 import shutil
 import time
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from geosim.augment.geometry import Boxes
 from geosim.augment.io import (
@@ -43,6 +43,7 @@ from geosim.augment.io import (
     write_yolo,
 )
 from geosim.augment.pipeline import AugImage, AugmentResult, Pipeline, flatten_records
+from geosim.engine import parallel_map
 from geosim.errors import OutputError, RasterError
 from geosim.io.atomic import write_json, write_text
 from geosim.io.paths import safe_name
@@ -85,6 +86,56 @@ def _load(run_dir: Path, row: PairRow, resolution: str) -> tuple[Tile, Tile, lis
                           f"{b.data.shape} px; the tiles of a pair must cover the same pixels "
                           "(re-run the tiles step)")
     return a, b, found
+
+
+@dataclass(frozen=True)
+class AugmentPairTask:
+    """One pair to augment ``n`` times (picklable: sent to a worker)."""
+
+    run_dir: Path
+    out: Path
+    row: PairRow
+    pipeline: Pipeline
+    n: int
+    seed: int
+    resolution: str
+    fmt: str
+
+
+@dataclass(frozen=True)
+class AugmentPairDone:
+    """What one pair's task reports back: manifest and parameter rows, counts."""
+
+    manifest_rows: list[dict[str, Any]]
+    params_rows: list[dict[str, Any]]
+    counts: dict[str, int]
+
+
+def augment_pair_task(task: AugmentPairTask) -> AugmentPairDone:
+    """Augment one pair ``n`` times and write its images, labels and metadata."""
+    row, pipeline, seed = task.row, task.pipeline, task.seed
+    tile_a, tile_b, found = _load(task.run_dir, row, task.resolution)
+    counts = {"boxes_in": 0, "boxes_out": 0, "boxes_dropped": 0,
+              "missing_label_files": found.count(False), "off_grid_images": 0}
+    gsd = tile_a.georef.gsd_m if tile_a.georef is not None else None
+    scale = pipeline.length_scale(gsd)
+    manifest: list[dict[str, Any]] = []
+    params_rows: list[dict[str, Any]] = []
+    for k in range(task.n):
+        aug_id = f"{safe_name(row.pair_id)}_k{k:03d}"
+        res = pipeline.apply(tile_a.data, tile_b.data, output_rng(seed, row.pair_id, k),
+                             length_scale=scale)
+        manifest.append(_write_outputs(task.out, aug_id, row, k, res, (tile_a, tile_b),
+                                       task.run_dir, fmt=task.fmt, seed=seed,
+                                       pipeline=pipeline, length_scale=scale))
+        params_rows.append({"aug_id": aug_id, "pair_id": row.pair_id, "index": k,
+                            "seed": seed, "length_scale": scale,
+                            **flatten_records(res.records)})
+        counts["boxes_in"] += len(tile_a.data.boxes) + len(tile_b.data.boxes)
+        counts["boxes_out"] += len(res.a.boxes) + len(res.b.boxes)
+        counts["boxes_dropped"] += res.dropped_a + res.dropped_b
+        counts["off_grid_images"] += res.on_map_grid.count(False)
+    return AugmentPairDone(manifest, params_rows, counts)
 
 
 def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int,
@@ -139,30 +190,13 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
     counts = {"boxes_in": 0, "boxes_out": 0, "boxes_dropped": 0, "missing_label_files": 0,
               "off_grid_images": 0}
     t0 = time.perf_counter()
-    bar = tqdm(total=len(rows) * n, desc="augment", unit="pair", disable=None)
-    try:
-        for row in rows:
-            tile_a, tile_b, found = _load(run_dir, row, resolution)
-            counts["missing_label_files"] += found.count(False)
-            gsd = tile_a.georef.gsd_m if tile_a.georef is not None else None
-            scale = pipeline.length_scale(gsd)
-            for k in range(n):
-                aug_id = f"{safe_name(row.pair_id)}_k{k:03d}"
-                res = pipeline.apply(tile_a.data, tile_b.data, output_rng(seed, row.pair_id, k),
-                                     length_scale=scale)
-                mrow = _write_outputs(out, aug_id, row, k, res, (tile_a, tile_b), run_dir,
-                                      fmt=fmt, seed=seed, pipeline=pipeline, length_scale=scale)
-                manifest.append(mrow)
-                params_rows.append({"aug_id": aug_id, "pair_id": row.pair_id, "index": k,
-                                    "seed": seed, "length_scale": scale,
-                                    **flatten_records(res.records)})
-                counts["boxes_in"] += len(tile_a.data.boxes) + len(tile_b.data.boxes)
-                counts["boxes_out"] += len(res.a.boxes) + len(res.b.boxes)
-                counts["boxes_dropped"] += res.dropped_a + res.dropped_b
-                counts["off_grid_images"] += res.on_map_grid.count(False)
-                bar.update(1)
-    finally:
-        bar.close()
+    tasks = [AugmentPairTask(run_dir, out, row, pipeline, n=n, seed=seed,
+                             resolution=resolution, fmt=fmt) for row in rows]
+    for done in parallel_map(augment_pair_task, tasks, desc="augment pairs"):
+        manifest.extend(done.manifest_rows)
+        params_rows.extend(done.params_rows)
+        for key, value in done.counts.items():
+            counts[key] += value
     seconds = time.perf_counter() - t0
     columns = ["aug_id", "pair_id", "index", "seed", "length_scale",
                *pipeline.record_columns()]

@@ -6,8 +6,11 @@ from pathlib import Path
 
 import click
 
+from geosim.cli.common import engine_options
+
 
 @click.command("augment")
+@engine_options
 @click.option("--pairs", "pairs_csv", type=click.Path(path_type=Path, dir_okay=False),
               help="pairs.csv of a run folder (tiles and labels are found beside it).")
 @click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False),

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+import functools
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import click
 
 from geosim.config import ANCHORS, load_site
+from geosim.engine import default_workers, open_engine
 from geosim.errors import ConfigError
 from geosim.pipeline import format_summary, run_pipeline
 
@@ -20,6 +22,33 @@ ANCHOR_OPTION = click.option(
     "--anchor", type=click.Choice(ANCHORS), default=None,
     help="Frame of the aligned flights, overriding [site] anchor: the reference flight's "
          "georeference (the paper) or the satellite scene's.")
+
+
+def engine_options(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Add ``--workers`` and ``--scheduler`` to a command and run it on that engine.
+
+    Put it right under ``@click.command()``. The command's own function does not see the
+    two options: its body runs with the chosen engine active
+    (:func:`geosim.engine.open_engine`), which is closed (cluster stopped) afterwards.
+    """
+
+    @functools.wraps(command)
+    def wrapper(*args: Any, workers: int | None, scheduler: str | None, **kwargs: Any) -> Any:
+        with open_engine(workers, scheduler):
+            return command(*args, **kwargs)
+
+    wrapper = click.option(
+        "--scheduler", "scheduler", default=None, envvar="GEOSIM_SCHEDULER",
+        metavar="ADDRESS",
+        help="Run the tasks on an existing Dask cluster (e.g. tcp://HOST:8786, started with "
+             "'dask scheduler' and 'dask worker ADDRESS' on machines sharing --out); "
+             "overrides --workers.")(wrapper)
+    wrapper = click.option(
+        "--workers", "workers", type=click.IntRange(min=1), default=None,
+        envvar="GEOSIM_WORKERS", show_envvar=True,
+        help="Worker processes of a local Dask cluster (default: the machine's cores, "
+             f"{default_workers()} here); 1 runs every task in this process.")(wrapper)
+    return wrapper
 
 
 def run_steps(site_file: Path, out: Path, steps: Sequence[str] | None, *,

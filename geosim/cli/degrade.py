@@ -6,10 +6,11 @@ from pathlib import Path
 
 import click
 
-from geosim.cli.common import OUT_OPTION, SITE_ARG, run_steps
+from geosim.cli.common import OUT_OPTION, SITE_ARG, engine_options, run_steps
 
 
 @click.command()
+@engine_options
 @SITE_ARG
 @OUT_OPTION
 @click.option("--q", "q", type=click.FloatRange(min=0, min_open=True), default=None,
@@ -32,6 +33,7 @@ def degrade(site_file: Path, out: Path, q: float | None, method: str) -> None:
 
 
 @click.command()
+@engine_options
 @SITE_ARG
 @OUT_OPTION
 def calibrate(site_file: Path, out: Path) -> None:

@@ -6,10 +6,12 @@ from pathlib import Path
 
 import click
 
+from geosim.cli.common import engine_options
 from geosim.errors import ConfigError
 
 
 @click.command()
+@engine_options
 @click.argument("site_file", required=False, type=click.Path(path_type=Path))
 @click.option("--uav", "uav", multiple=True, type=click.Path(path_type=Path),
               help="UAV orthomosaic GeoTIFF (any CRS); repeatable. Every one that overlaps the "

@@ -6,10 +6,11 @@ from pathlib import Path
 
 import click
 
-from geosim.cli.common import run_steps
+from geosim.cli.common import engine_options, run_steps
 
 
 @click.command()
+@engine_options
 @click.argument("site_file", type=click.Path(path_type=Path))
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path),
               help="Run folder (needs grid/, alignment.json and tiles/ from earlier steps).")

@@ -11,10 +11,11 @@ from pathlib import Path
 
 import click
 
-from geosim.cli.common import ANCHOR_OPTION, OUT_OPTION, SITE_ARG, run_steps
+from geosim.cli.common import ANCHOR_OPTION, OUT_OPTION, SITE_ARG, engine_options, run_steps
 
 
 @click.command()
+@engine_options
 @SITE_ARG
 @OUT_OPTION
 def grid(site_file: Path, out: Path) -> None:
@@ -27,6 +28,7 @@ def grid(site_file: Path, out: Path) -> None:
 
 
 @click.command()
+@engine_options
 @SITE_ARG
 @OUT_OPTION
 @ANCHOR_OPTION
@@ -39,6 +41,7 @@ def align(site_file: Path, out: Path, anchor: str | None) -> None:
 
 
 @click.command()
+@engine_options
 @SITE_ARG
 @OUT_OPTION
 def tile(site_file: Path, out: Path) -> None:
@@ -50,6 +53,7 @@ def tile(site_file: Path, out: Path) -> None:
 
 
 @click.command()
+@engine_options
 @SITE_ARG
 @OUT_OPTION
 @ANCHOR_OPTION

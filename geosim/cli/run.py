@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from geosim.cli.common import ANCHOR_OPTION, OUT_OPTION, SITE_ARG, run_steps
+from geosim.cli.common import ANCHOR_OPTION, OUT_OPTION, SITE_ARG, engine_options, run_steps
 from geosim.log import info as log_info
 from geosim.pipeline import STEP_NAMES
 from geosim.rundir import RunDir
@@ -17,6 +17,7 @@ _ONLY = click.option("--only", "only", multiple=True, type=click.Choice(STEP_NAM
 
 
 @click.command()
+@engine_options
 @SITE_ARG
 @OUT_OPTION
 @_ONLY
@@ -28,6 +29,7 @@ def run(site_file: Path, out: Path, only: tuple[str, ...], anchor: str | None) -
 
 
 @click.command()
+@engine_options
 @click.option("--out", "out", default=Path("demo_out"), show_default=True,
               type=click.Path(path_type=Path), help="Output folder (created if needed).")
 @_ONLY

@@ -29,7 +29,7 @@ from affine import Affine
 from rasterio.windows import Window
 from tqdm import tqdm
 
-from geosim import __version__
+from geosim import __version__, manifest
 from geosim.config import SiteConfig
 from geosim.degrade.blur import laplacian_moments, to_grey
 from geosim.degrade.calibrate import (
@@ -53,6 +53,7 @@ from geosim.io.raster import (
     read_valid_mask,
     write_geotiff,
 )
+from geosim.manifest import skip_text
 from geosim.physics.psf import first_zero_px
 from geosim.prepare.grid import sat_grid_offset
 from geosim.result import StepResult
@@ -196,6 +197,52 @@ def calibrate_flight(flight_id: str, flight_path: Path, sat: rasterio.DatasetRea
             "evaluations": sol.evaluations}
 
 
+@dataclass(frozen=True)
+class CalibrateTask:
+    """One flight to calibrate against the satellite scene (picklable)."""
+
+    out_dir: Path
+    flight: str
+    flight_path: Path
+    sat_path: Path
+    phi: int
+    q_min: float
+    q_max: float
+
+
+@dataclass(frozen=True)
+class CalibrateDone:
+    """A flight's calibration record and whether it came from the manifest."""
+
+    result: dict[str, Any]
+    skipped: bool
+
+
+def calibrate_task(task: CalibrateTask) -> CalibrateDone:
+    """Calibrate one flight (:func:`calibrate_flight`), or reuse its current record."""
+    key = f"calibration/{task.flight}"
+    inputs = [task.flight_path, task.sat_path]
+    params = {"step": "calibrate", "flight": task.flight, "phi": task.phi,
+              "q_min": task.q_min, "q_max": task.q_max, "n_curve": N_CURVE_SAMPLES,
+              "block_sat_px": BLOCK_SAT_PX, "margin_sat_px": MARGIN_SAT_PX}
+    entry = manifest.cached(task.out_dir, key, inputs, params)
+    if entry is not None and isinstance(entry.get("result"), dict):
+        return CalibrateDone(entry["result"], skipped=True)
+    with open_raster(task.sat_path, what="satellite scene on the shared grid") as sat:
+        result = calibrate_flight(task.flight, task.flight_path, sat, phi=task.phi,
+                                  q_min=task.q_min, q_max=task.q_max)
+    # Through JSON now, so that a fresh and a reused record are the same values.
+    result = json.loads(json.dumps(result, default=_json_number))
+    manifest.record(task.out_dir, key, inputs, params, result=result)
+    return CalibrateDone(result, skipped=False)
+
+
+def _json_number(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
 def run_calibrate(site: SiteConfig, out: RunPath) -> StepResult:
     """Calibrate Q of every flight against the satellite scene; write JSON and figure.
 
@@ -230,8 +277,11 @@ def run_calibrate(site: SiteConfig, out: RunPath) -> StepResult:
     with open_raster(sat_path, what="satellite scene on the shared grid") as sat:
         if not image_band_indexes(sat):
             raise RasterError(f"{sat_path}: no image bands")
-        flights = [calibrate_flight(fid, path, sat, phi=p.phi, q_min=p.q_min, q_max=p.q_max)
-                   for fid, path in paths.items()]
+    tasks = [CalibrateTask(run.root, fid, path, sat_path, phi=p.phi, q_min=p.q_min,
+                           q_max=p.q_max) for fid, path in paths.items()]
+    done = parallel_map(calibrate_task, tasks, desc="calibrate")
+    flights = [d.result for d in done]
+    n_skipped = sum(d.skipped for d in done)
     ok = [f for f in flights if f["status"] == "ok"]
     mean_q = float(np.mean([f["q"] for f in ok])) if ok else None
     warnings = [w for f in ok if (w := plausibility_warning(f["q"], what=f"Q of {f['flight']}"))]
@@ -268,13 +318,14 @@ def run_calibrate(site: SiteConfig, out: RunPath) -> StepResult:
     skipped = [f["flight"] for f in flights if f["status"] != "ok"]
     if skipped:
         text += f"; not calibrated: {', '.join(skipped)}"
+    text += skip_text(n_skipped, len(flights)).replace("current", "calibrated")
     return StepResult(
         summary=text + (" — Q outside 0.5–2: run geosim diagnose" if warning else ""),
         warnings=[warning] if warning else [],
         outputs=[run.rel(run.calibration_json), run.rel(run.calibration_png)],
         record={"mean_q": mean_q, "q": {f["flight"]: f["q"] for f in ok},
                 "lv_satellite": {f["flight"]: f["lv_satellite"] for f in ok},
-                "not_calibrated": skipped})
+                "not_calibrated": skipped, "skipped_current": n_skipped})
 
 
 # --------------------------------------------------------------------------- degrade
@@ -362,12 +413,24 @@ class DegradeTileTask:
     obscuration: float
     uav_gsd_m: float | None
     tags: dict[str, str]
+    #: Run folder whose manifest says whether ``dst`` is current (None: always degrade).
+    run_dir: str | None = None
 
 
 def degrade_tile_task(task: DegradeTileTask) -> dict[str, Any]:
-    """Run a :class:`DegradeTileTask` (see :func:`degrade_tile`)."""
-    return degrade_tile(task.src, task.dst, q=task.q, phi=task.phi, method=task.method,
+    """Run a :class:`DegradeTileTask` (see :func:`degrade_tile`) unless ``dst`` is current.
+
+    The tags hold every parameter (Q, method, φ, GSDs, obscuration, sources); the result
+    says whether the tile was ``skipped``.
+    """
+    if task.run_dir is not None and manifest.is_current(task.run_dir, task.dst, [task.src],
+                                                        task.tags):
+        return {"skipped": True}
+    done = degrade_tile(task.src, task.dst, q=task.q, phi=task.phi, method=task.method,
                         obscuration=task.obscuration, uav_gsd_m=task.uav_gsd_m, tags=task.tags)
+    if task.run_dir is not None:
+        manifest.record_output(task.run_dir, task.dst, [task.src], task.tags)
+    return {**done, "skipped": False}
 
 
 def run_degrade(site: SiteConfig, out: RunPath, q: float | None = None, *,
@@ -432,17 +495,20 @@ def run_degrade(site: SiteConfig, out: RunPath, q: float | None = None, *,
                 "GEOSIM_FLIGHT": fid, "GEOSIM_TILE_ID": src.stem,
                 **acquisition_tags(acquired[fid])}
         tasks.append(DegradeTileTask(str(src), str(dst), q, p.phi, method, obscuration,
-                                     p.uav_gsd_m, tags))
+                                     p.uav_gsd_m, tags, str(run.root)))
         outputs.append(run.rel(dst))
-    parallel_map(degrade_tile_task, tasks)
+    n_skipped = sum(r["skipped"] for r in parallel_map(degrade_tile_task, tasks,
+                                                         desc="degrade"))
     for fid, _src in jobs:
         counts[fid] += 1
     seconds = time.perf_counter() - start
     warning = plausibility_warning(q, what="Q")
     return StepResult(
         summary=(f"{len(jobs)} tile(s) degraded to {p.sat_gsd_m:g} m at Q = {q:.3g} "
-                 f"({q_source}, {method} method) in {run.rel(run.degraded_dir)}/"),
+                 f"({q_source}, {method} method) in {run.rel(run.degraded_dir)}/"
+                 + skip_text(n_skipped, len(jobs))),
         warnings=[warning] if warning else [], outputs=outputs,
         record={"q": q, "q_source": q_source, "method": method, "tiles": len(jobs),
                 "tiles_per_flight": counts, "out": run.rel(run.degraded_dir),
-                "seconds_per_tile": round(seconds / len(jobs), 3)})
+                "seconds_per_tile": round(seconds / len(jobs), 3),
+                "skipped_current": n_skipped})

@@ -19,9 +19,11 @@ satellite pixels at the centre of the common valid area (the UAV part of it is
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +37,7 @@ from geosim.diagnose.engine import diagnose_arrays
 from geosim.diagnose.locate import laplacian_variance
 from geosim.diagnose.report import write_diagnosis
 from geosim.diagnose.simulate import QSimulator
+from geosim.engine import parallel_map
 from geosim.errors import DiagnosisError, ExtentError
 from geosim.io.paths import safe_name, unique_name
 from geosim.io.raster import image_band_indexes, open_raster, read_valid_mask
@@ -176,6 +179,31 @@ def _flight_dir(flight: str, taken: set[str]) -> str:
     return name
 
 
+@dataclass(frozen=True)
+class DiagnoseFlightTask:
+    """One flight to diagnose: ``load()`` gives :func:`diagnose_grids`' arrays (picklable)."""
+
+    flight: str
+    load: Callable[[], dict[str, Any]]
+    out_dir: Path
+    phi: int
+    seed: int
+    q_min: float
+    q_max: float
+
+
+def diagnose_flight_task(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
+    """Diagnose one flight into ``task.out_dir``: (diagnosis.json dict, None), or
+    (None, why) when it cannot be diagnosed (too little overlap, no usable data)."""
+    try:
+        kw = task.load()
+        return diagnose_grids(phi=task.phi, seed=task.seed, q_min=task.q_min,
+                              q_max=task.q_max, out_dir=task.out_dir,
+                              extra={"flight": task.flight}, **kw), None
+    except (DiagnosisError, ExtentError) as exc:
+        return None, str(exc)
+
+
 def diagnose_flights(loaders: list[tuple[str, Callable[[], dict[str, Any]]]], out_dir: Path, *,
                      reference: str | None, phi: int, seed: int = 0, q_min: float = 0.5,
                      q_max: float = 8.0) -> dict[str, Any]:
@@ -198,25 +226,21 @@ def diagnose_flights(loaders: list[tuple[str, Callable[[], dict[str, Any]]]], ou
     dict
         The combined diagnosis.json dict.
     """
-    from tqdm import tqdm
-
     from geosim.diagnose.report import write_combined
 
     per: dict[str, dict[str, Any]] = {}
     dirs: dict[str, str] = {}
     skipped: dict[str, str] = {}
     taken: set[str] = set()
-    for i, (fid, load) in enumerate(tqdm(loaders, desc="diagnose flights", unit="flight",
-                                         disable=None)):
-        try:
-            kw = load()
-            dirs[fid] = _flight_dir(fid, taken)
-            per[fid] = diagnose_grids(phi=phi, seed=seed + 1000 * i, q_min=q_min, q_max=q_max,
-                                      out_dir=out_dir / dirs[fid], extra={"flight": fid},
-                                      **kw)
-        except (DiagnosisError, ExtentError) as exc:
-            skipped[fid] = str(exc)
-            dirs.pop(fid, None)
+    tasks = [DiagnoseFlightTask(fid, load, out_dir / _flight_dir(fid, taken), phi=phi,
+                                seed=seed + 1000 * i, q_min=q_min, q_max=q_max)
+             for i, (fid, load) in enumerate(loaders)]
+    for task, (doc, why) in zip(tasks, parallel_map(diagnose_flight_task, tasks,
+                                                    desc="diagnose flights"), strict=True):
+        if doc is None:
+            skipped[task.flight] = why or ""
+        else:
+            per[task.flight], dirs[task.flight] = doc, task.out_dir.name
     if not per:
         raise DiagnosisError(f"{out_dir}: no flight could be diagnosed against the satellite "
                              "scene (" + "; ".join(f"{k}: {v}" for k, v in skipped.items())
@@ -285,10 +309,8 @@ def run_diagnose(site: Any, out: RunPath) -> StepResult:
     reference = site.reference_flight if site.reference_flight else site.flights[0].id
     phi = site.parameters.phi
 
-    def loader(flight: str) -> Callable[[], dict[str, Any]]:
-        return lambda: _read_flight(run, sat_path, flight, phi)
-
-    loaders = [(f.id, loader(f.id)) for f in site.flights]
+    loaders = [(f.id, functools.partial(_read_flight, run, sat_path, f.id, phi))
+               for f in site.flights]
     doc = diagnose_flights(loaders, run.diagnosis_dir, reference=reference, phi=phi,
                            q_min=site.parameters.q_min, q_max=site.parameters.q_max)
     summary = _summary(doc, run.diagnosis_dir)

@@ -43,9 +43,9 @@ import rasterio
 import shapely
 from affine import Affine
 from pyproj import CRS, Transformer
-from tqdm import tqdm
 
 from geosim.config import SiteConfig
+from geosim.engine import parallel_map
 from geosim.errors import AlignmentError, InputFileError
 from geosim.io.georef import Georef
 from geosim.io.publish import publish_folder
@@ -248,6 +248,22 @@ def build_tile_labels(cattle: gpd.GeoDataFrame, tiles: list[Georef], *, phi: int
     return TileLabels(uav, sat, per_feature, stats)
 
 
+@dataclass(frozen=True)
+class FlightLabelsTask:
+    """One flight's cattle and tiles (picklable: sent to a worker)."""
+
+    cattle: gpd.GeoDataFrame
+    tiles: list[Georef]
+    phi: int
+    min_visible_fraction: float
+
+
+def flight_labels_task(task: FlightLabelsTask) -> TileLabels:
+    """:func:`build_tile_labels` of one flight, as an engine task."""
+    return build_tile_labels(task.cattle, task.tiles, phi=task.phi,
+                             min_visible_fraction=task.min_visible_fraction)
+
+
 # ---------------------------------------------------------------------- writing
 
 
@@ -330,27 +346,26 @@ def run_labels(site: SiteConfig, out: RunPath, *,
                               "".join(f"{c}\n" for c in CLASS_NAMES)}
     uav_dir, sat_dir = (run.yolo_dir(r).relative_to(final) for r in ("uav", "0.5m"))
     tile_ids = [""] * len(cattle)
-    n_tiles = sum(len(tiles[f]) for f in labelled)
-    with tqdm(total=n_tiles, desc="labels per tile", unit="tile", disable=None) as bar:
-        for fid in labelled:
-            pos = np.flatnonzero((cattle["flight"] == fid).to_numpy())
-            built = build_tile_labels(cattle.iloc[pos], tiles[fid], phi=params.phi,
-                                      min_visible_fraction=params.min_visible_fraction,
-                                      progress=bar.update if n_tiles else None)
-            for tid, text in built.uav.items():
-                texts[uav_dir / fid / f"{tid}.txt"] = text
-            for tid, text in built.sat.items():
-                texts[sat_dir / fid / f"{tid}.txt"] = text
-            for k, ids in built.tile_ids_per_feature.items():
-                tile_ids[pos[k]] = ";".join(ids)
-            n_read = int((stated["flight"] == fid).sum())
-            per_flight[fid] = {
-                "labels_read": n_read,
-                "cattle": int(pos.size),
-                "duplicates_merged": n_read - int(pos.size),
-                "below_sat_pixel": int(cattle["below_sat_pixel"].iloc[pos].sum()),
-                **built.stats,
-            }
+    positions = {fid: np.flatnonzero((cattle["flight"] == fid).to_numpy()) for fid in labelled}
+    tasks = [FlightLabelsTask(cattle.iloc[positions[fid]], tiles[fid], params.phi,
+                              params.min_visible_fraction) for fid in labelled]
+    for fid, built in zip(labelled, parallel_map(flight_labels_task, tasks,
+                                                 desc="labels per flight"), strict=True):
+        pos = positions[fid]
+        for tid, text in built.uav.items():
+            texts[uav_dir / fid / f"{tid}.txt"] = text
+        for tid, text in built.sat.items():
+            texts[sat_dir / fid / f"{tid}.txt"] = text
+        for k, ids in built.tile_ids_per_feature.items():
+            tile_ids[pos[k]] = ";".join(ids)
+        n_read = int((stated["flight"] == fid).sum())
+        per_flight[fid] = {
+            "labels_read": n_read,
+            "cattle": int(pos.size),
+            "duplicates_merged": n_read - int(pos.size),
+            "below_sat_pixel": int(cattle["below_sat_pixel"].iloc[pos].sum()),
+            **built.stats,
+        }
     cattle["tile_ids"] = tile_ids
 
     with _staging(final) as stage:

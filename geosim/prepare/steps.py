@@ -26,6 +26,7 @@ from geosim.errors import AlignmentError, ExtentError
 from geosim.io.atomic import write_json, write_text
 from geosim.io.raster import acquisition_tags, open_raster, provenance_tags
 from geosim.io.vector import write_geojson, write_gpkg
+from geosim.manifest import ResumableTask, run_resumable, skip_text
 from geosim.prepare import alignment as al
 from geosim.prepare import anchor as anc
 from geosim.prepare.footprints import common_extent, raster_footprint, source_footprint
@@ -384,10 +385,12 @@ def _local_fields(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
 
 def _warp_aligned(site: SiteConfig, run: RunDir, grid: SiteGrid,
                   warps: dict[str, ComposedWarp], entries: dict[str, dict[str, Any]],
-                  rwin: Window, awin: Window, params: dict[str, Any]) -> dict[str, np.ndarray]:
+                  rwin: Window, awin: Window, params: dict[str, Any]
+                  ) -> tuple[dict[str, np.ndarray], int]:
     """Write ``aligned/<flight>.tif``: one warp from each original flight onto the aligned
-    grid through its correction (engine tasks). Returns each flight's 3×3 grid-pixel
-    correction matrix."""
+    grid through its correction (engine tasks, resumable: a flight whose raster was made by
+    the same warp from the same file is skipped). Returns each flight's 3×3 grid-pixel
+    correction matrix and how many flights were skipped."""
     aligned_transform = grid.uav_window_transform(awin)
     g3 = al._3x3(grid.uav_transform)
     m_grids: dict[str, np.ndarray] = {}
@@ -405,8 +408,10 @@ def _warp_aligned(site: SiteConfig, run: RunDir, grid: SiteGrid,
             tuple(aligned_transform)[:6], (int(awin.height), int(awin.width)), BLOCK_PX,
             provenance_tags("align", {**params, "resampled": "once, from the original flight"},
                             [f.image], base_dir=run.root), f.id))
-    parallel_map(warp_raster_task, tasks)
-    return m_grids
+    n_skipped = sum(parallel_map(run_resumable, [
+        ResumableTask(str(run.root), warp_raster_task, t, t.dst_path, (t.warp.src_path,))
+        for t in tasks], desc="align"))
+    return m_grids, n_skipped
 
 
 def run_align(site: SiteConfig, out: RunPath) -> StepResult:
@@ -476,7 +481,7 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
     else:
         anchor = _identity_anchor(center_m)
     aligned_transform = grid.uav_window_transform(awin)
-    m_grids = _warp_aligned(site, run, grid, warps, entries, rwin, awin, params)
+    m_grids, n_skipped = _warp_aligned(site, run, grid, warps, entries, rwin, awin, params)
     if p.align_model == "local":
         params["align_model"] = "local"
         # the local field is still applied from flights on the site grid (see
@@ -546,11 +551,12 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
                             "confidence": round(e["confidence"], 3)}
                         for k, e in entries.items()},
             "local_median_shift_px": {k: v["median_shift_px"] for k, v in local.items()},
-            "align_model": p.align_model}
+            "align_model": p.align_model, "skipped_current": n_skipped}
     return StepResult(
         summary=(f"{len(entries)} flight(s) on reference {ref_id} ({p.align_model}); "
                  f"aligned grid {int(awin.width)}×{int(awin.height)} px; largest |shift| "
-                 f"at flight {worst[1]}{anchor_text}"),
+                 f"at flight {worst[1]}{anchor_text}"
+                 + skip_text(n_skipped, len(entries)).replace("current", "aligned")),
         warnings=_fallback_warnings(entries), outputs=[run.rel(o) for o in outputs],
         record=record)
 
@@ -604,11 +610,13 @@ def run_tiles(site: SiteConfig, out: RunPath) -> StepResult:
     params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles}
     jobs = [(t, fid) for t, cov in selected for fid in apath if cov[fid] > 0]
     acquired = {f.id: f.acquired for f in site.flights}
-    parallel_map(cut_tile_task, [
-        CutTileTask(str(apath[fid]), str(run.tile(fid, t.id)), t,
-                    {**provenance_tags("tiles", params, [apath[fid]], base_dir=run.root),
-                     "GEOSIM_TILE_ID": t.id, "GEOSIM_FLIGHT": fid,
-                     **acquisition_tags(acquired[fid])}) for t, fid in jobs])
+    cut = [CutTileTask(str(apath[fid]), str(run.tile(fid, t.id)), t,
+                       {**provenance_tags("tiles", params, [apath[fid]], base_dir=run.root),
+                        "GEOSIM_TILE_ID": t.id, "GEOSIM_FLIGHT": fid,
+                        **acquisition_tags(acquired[fid])}) for t, fid in jobs]
+    n_skipped = sum(parallel_map(run_resumable, [  # resumable: current tiles are skipped
+        ResumableTask(str(run.root), cut_tile_task, c, c.dst_path, (c.src_path,)) for c in cut],
+        desc="tiles"))
     outputs: list[Path] = [run.tile(fid, t.id) for t, fid in jobs]
     written = len(outputs)
     records = index_records(selected, _crs_name(grid.crs), p.tile_px,
@@ -627,10 +635,10 @@ def run_tiles(site: SiteConfig, out: RunPath) -> StepResult:
     n_all = len(tiles)
     return StepResult(
         summary=(f"{len(selected)} of {n_all} tile(s) of {p.tile_px} px kept, "
-                 f"{written} file(s)"),
+                 f"{written} file(s)" + skip_text(n_skipped, written)),
         outputs=[run.rel(o) for o in outputs],
         record={"tiles": len(selected), "tiles_considered": n_all, "files": written,
-                "tile_px": p.tile_px})
+                "tile_px": p.tile_px, "skipped_current": n_skipped})
 
 
 # --------------------------------------------------------------------------- pairs

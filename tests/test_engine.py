@@ -1,0 +1,288 @@
+"""The engines: a local Dask cluster and an existing scheduler give the same outputs as one
+process, errors in workers come back as the same one-line errors, and a rerun resumes.
+
+The truth compared against is an in-process run of the same steps on the sample site,
+read back with GDAL / pyogrio / PIL (tests/engine_outputs.py), not the engine's own records.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from click.testing import CliRunner
+
+from geosim.cli.main import cli
+from geosim.engine import (
+    InProcess,
+    LocalCluster,
+    SchedulerCluster,
+    _check_identities,
+    _geosim_identity,
+    make_engine,
+    open_engine,
+    parallel_map,
+)
+from geosim.errors import ConfigError, EngineError, InputFileError
+from tests.engine_outputs import differing, output_digests
+
+PROJECT = Path(__file__).resolve().parents[1]
+#: Every step but diagnose (tested for equality by hand; 30-100 s on the sample site).
+STEPS = ("grid", "footprints", "align", "tiles", "pairs", "labels", "calibrate", "degrade")
+LATE = ("tiles", "pairs", "labels", "calibrate", "degrade")
+#: What the late steps write (compared after a run of LATE only).
+LATE_OUTPUTS = ("tiles/", "pairs.csv", "labels/", "calibration.", "degraded/")
+
+
+def _only(steps: tuple[str, ...]) -> list[str]:
+    return [a for s in steps for a in ("--only", s)]
+
+
+def _run(site: Path, out: Path, *extra: str) -> dict:
+    res = CliRunner().invoke(cli, ["run", str(site), "--out", str(out), *extra],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    return json.loads((out / "run.json").read_text())
+
+
+def _square(x: int) -> int:
+    if x < 0:
+        raise InputFileError(f"tile {x}.tif not found; run 'geosim tile' first")
+    return x * x
+
+
+@pytest.fixture(scope="module")
+def base(samples_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The steps run in this process (--workers 1): the reference outputs."""
+    out = tmp_path_factory.mktemp("engine") / "base"
+    record = _run(samples_dir / "site.toml", out, "--workers", "1", *_only(STEPS))
+    assert record["engine"] == {"kind": "in-process", "workers": 1}
+    return out
+
+
+def _late_digests(run: Path) -> dict[str, str]:
+    return {k: v for k, v in output_digests(run).items() if k.startswith(LATE_OUTPUTS)}
+
+
+def _copy_early(base: Path, dst: Path) -> Path:
+    """The run folder as it is after grid, footprints and align (no late outputs)."""
+    shutil.copytree(base, dst, ignore=shutil.ignore_patterns(
+        "tiles", "pairs.csv", "labels", "calibration.*", "degraded", ".geosim", "run.json"))
+    return dst
+
+
+# ----------------------------------------------------------------------------- units
+
+
+def test_make_engine_choices() -> None:
+    assert isinstance(make_engine(1), InProcess)
+    assert isinstance(make_engine(2), LocalCluster)
+    assert isinstance(make_engine(1, "tcp://127.0.0.1:8786"), SchedulerCluster)
+    with pytest.raises(ConfigError, match="--workers 0"):
+        make_engine(0)
+    with pytest.raises(ConfigError, match="tcp://HOST:PORT"):
+        make_engine(None, "somehost")
+
+
+def test_in_process_map_keeps_order_and_errors() -> None:
+    assert parallel_map(_square, [3, 1, 2]) == [9, 1, 4]
+    with pytest.raises(InputFileError, match="tile -1.tif"):
+        parallel_map(_square, [1, -1])
+
+
+def test_workers_must_import_the_same_geosim() -> None:
+    mine = _geosim_identity()
+    _check_identities({"tcp://127.0.0.1:1": dict(mine)}, "cluster")
+    with pytest.raises(EngineError, match="imports geosim .* from /elsewhere/geosim"):
+        _check_identities({"tcp://127.0.0.1:1": {**mine, "file": "/elsewhere/geosim/__init__.py"}},
+                          "cluster")
+
+
+def test_unreachable_scheduler_is_one_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr("geosim.engine.CONNECT_TIMEOUT_S", 2)
+    with pytest.raises(EngineError, match="cannot reach the Dask scheduler"), \
+            open_engine(scheduler=f"tcp://127.0.0.1:{_free_port()}"):
+        parallel_map(_square, [1, 2])
+
+
+def test_local_cluster_order_workers_and_worker_errors() -> None:
+    with open_engine(2) as engine:
+        assert parallel_map(_square, list(range(8))) == [i * i for i in range(8)]
+        with pytest.raises(InputFileError, match="tile -1.tif not found"):
+            parallel_map(_square, [2, -1, 3])
+        info = engine.describe()
+    assert info["kind"] == "local-cluster" and info["workers"] == 2
+    assert info["workers_connected"] == 2
+    assert info["scheduler"].startswith("tcp://127.0.0.1:")
+    assert 1 <= len(info["workers_used"]) <= 2
+    assert all(w.startswith("tcp://127.0.0.1:") for w in info["workers_used"])
+
+
+def test_worker_error_reaches_the_cli_as_one_line(samples_dir: Path, tmp_path: Path) -> None:
+    tiles = tmp_path / "run" / "tiles" / "PA1"
+    tiles.mkdir(parents=True)
+    (tiles / "r001_c001.tif").write_bytes(b"not a GeoTIFF")
+    res = CliRunner().invoke(cli, ["degrade", str(samples_dir / "site.toml"), "--out",
+                                   str(tmp_path / "run"), "--q", "2", "--workers", "2"])
+    assert res.exit_code == 2, res.output
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("geosim: error:"), res.stderr
+    assert "r001_c001.tif" in lines[0] and "Traceback" not in res.output
+    assert not (tmp_path / "run" / "degraded" / "PA1" / "r001_c001.tif").exists()
+
+
+# ----------------------------------------------------------------------------- same outputs
+
+
+def test_two_worker_cluster_gives_the_same_outputs_and_reruns_skip(
+        base: Path, samples_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "two"
+    record = _run(samples_dir / "site.toml", out, "--workers", "2", *_only(STEPS))
+    engine = record["engine"]
+    assert engine["kind"] == "local-cluster" and engine["workers"] == 2
+    assert len(engine["workers_used"]) == 2  # 3 aligned flights, 12 tiles: both got work
+    want = output_digests(base)
+    assert len(want) > 40
+    assert differing(want, output_digests(out)) == []
+
+    # Nothing changed: the rerun skips every per-output task and says so.
+    again = _run(samples_dir / "site.toml", out, "--workers", "2", *_only(STEPS))
+    steps = again["steps"]
+    assert steps["align"]["summary"]["skipped_current"] == 3
+    assert steps["tiles"]["summary"]["skipped_current"] == 12
+    assert steps["calibrate"]["summary"]["skipped_current"] == 3
+    assert steps["degrade"]["summary"]["skipped_current"] == 12
+    assert "12 of 12 already current, skipped" in steps["degrade"]["summary"]["text"]
+    assert differing(want, output_digests(out)) == []
+
+    # One UAV tile changes: only its degraded tile is made again.
+    tile = out / "tiles" / "PA2" / "r001_c001.tif"
+    with rasterio.open(tile, "r+") as ds:
+        band = ds.read(1)
+        band[:50, :50] = 255 - band[:50, :50]
+        ds.write(band, 1)
+    once = _run(samples_dir / "site.toml", out, "--workers", "1", "--only", "degrade")
+    assert once["steps"]["degrade"]["summary"]["skipped_current"] == 11
+    changed = differing(want, output_digests(out))
+    assert changed == ["degraded/PA2/r001_c001.tif", "tiles/PA2/r001_c001.tif"]
+
+
+def test_kill_9_mid_run_then_rerun_equals_uninterrupted(
+        base: Path, samples_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "geosim", "run", str(samples_dir / "site.toml"), "--out",
+           str(out), "--workers", "2", *_only(STEPS)]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(PROJECT),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    entries = out / ".geosim" / "manifest" / "aligned"
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and proc.poll() is None:
+            if entries.is_dir() and any(entries.glob("*.json")):
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        os.killpg(proc.pid, signal.SIGKILL)  # the driver and its cluster, as kill -9 would
+        proc.wait(timeout=30)
+    finally:
+        _kill_group(proc)
+    assert not (out / "degraded").exists()  # killed mid-run
+    finished_before = len(list(entries.glob("*.json")))
+    assert finished_before >= 1
+    record = _run(samples_dir / "site.toml", out, "--workers", "2", *_only(STEPS))
+    assert record["steps"]["align"]["summary"]["skipped_current"] >= finished_before
+    assert differing(output_digests(base), output_digests(out)) == []
+
+
+# ----------------------------------------------------------------------------- dask scheduler
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=15)
+        except (ProcessLookupError, subprocess.TimeoutExpired):
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            proc.wait(timeout=15)
+
+
+@pytest.fixture
+def dask_cluster(tmp_path: Path) -> Iterator[tuple[str, list[subprocess.Popen]]]:
+    """``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1; stopped after."""
+    dask_bin = Path(sys.executable).with_name("dask")
+    if not dask_bin.is_file():
+        pytest.skip(f"the dask command is not installed beside {sys.executable}")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(PROJECT),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    logs = tmp_path / "dask_logs"
+    logs.mkdir()
+    procs: list[subprocess.Popen] = []
+    try:
+        procs.append(subprocess.Popen(
+            [str(dask_bin), "scheduler", "--host", "127.0.0.1", "--port", str(port),
+             "--no-dashboard"], env=env, cwd=tmp_path, start_new_session=True,
+            stdout=subprocess.DEVNULL, stderr=open(logs / "scheduler.log", "wb")))
+        for i in range(2):
+            procs.append(subprocess.Popen(
+                [str(dask_bin), "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
+                 "--nworkers", "1", "--no-dashboard", "--death-timeout", "60"],
+                env=env, cwd=tmp_path, start_new_session=True, stdout=subprocess.DEVNULL,
+                stderr=open(logs / f"worker{i}.log", "wb")))
+        from distributed import Client
+
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=120)
+        yield address, procs
+    finally:
+        for p in reversed(procs):
+            _kill_group(p)
+        assert all(p.poll() is not None for p in procs)
+
+
+def test_existing_scheduler_runs_the_steps_on_its_workers(
+        base: Path, samples_dir: Path, tmp_path: Path,
+        dask_cluster: tuple[str, list[subprocess.Popen]]) -> None:
+    address, _ = dask_cluster
+    out = _copy_early(base, tmp_path / "sched")
+    from distributed import Client
+
+    with Client(address, timeout=30) as client:
+        worker_addresses = set(client.scheduler_info()["workers"])
+    assert len(worker_addresses) == 2
+    record = _run(samples_dir / "site.toml", out, "--scheduler", address, *_only(LATE))
+    engine = record["engine"]
+    assert engine["kind"] == "scheduler" and engine["address"] == address
+    assert engine["workers_connected"] == 2
+    assert set(engine["workers_used"]) <= worker_addresses and engine["workers_used"]
+    want = _late_digests(base)
+    assert len(want) >= 12 * 2 + 2
+    assert differing(want, _late_digests(out)) == []
+    # the tiles came from the workers: their provenance names the run folder's sources
+    with rasterio.open(out / "degraded" / "PA1" / "r001_c001.tif") as ds:
+        assert ds.tags()["GEOSIM_STEP"] == "degrade"
+        assert np.any(ds.read(1))
