@@ -51,7 +51,7 @@ def _gpkg_digest(path: Path) -> str:
     for name, _ in pyogrio.list_layers(path):
         df = pyogrio.read_dataframe(path, layer=name)
         h.update(name.encode())
-        h.update(df.to_json(sort_keys=True).encode())
+        h.update(df.to_json(sort_keys=True, default=str).encode())
     return h.hexdigest()
 
 
