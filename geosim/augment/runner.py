@@ -138,6 +138,14 @@ def augment_pair_task(task: AugmentPairTask) -> AugmentPairDone:
     return AugmentPairDone(manifest, params_rows, counts)
 
 
+def check_augment_out(out: Path, overwrite: bool) -> None:
+    """Refuse an --out folder holding augmented pairs unless ``overwrite`` (OutputError)."""
+    manifest_path = out / "augmented_pairs.csv"
+    if manifest_path.exists() and not overwrite:
+        raise OutputError(f"{out} already holds augmented pairs ({manifest_path.name}); choose "
+                          "another --out folder or pass --overwrite")
+
+
 def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int,
                 out_dir: str | os.PathLike[str], seed: int | None = None,
                 resolution: str = "uav", fmt: str = "tif", overwrite: bool = False,
@@ -176,9 +184,7 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
     run_dir = pairs_csv.parent
     out = Path(out_dir)
     manifest_path = out / "augmented_pairs.csv"
-    if manifest_path.exists() and not overwrite:
-        raise OutputError(f"{out} already holds augmented pairs ({manifest_path.name}); choose "
-                          "another --out folder or pass --overwrite")
+    check_augment_out(out, overwrite)
     if overwrite:
         for sub in ("images", "labels", "meta"):
             shutil.rmtree(out / sub, ignore_errors=True)

@@ -48,18 +48,30 @@ def augment(pairs_csv: Path | None, config_path: Path | None, n_per_pair: int, o
     if (pairs_csv is None) == (plot_warp is None):
         raise click.UsageError("give either --pairs (augment a run folder) or --plot-warp "
                                "(draw the local-warp figure)")
-    if plot_warp is not None:
-        _plot(plot_warp, out_path, seed, max_px, filter_sigma_px)
+    from geosim.record import command_record, record_path
+
+    options = {"config": config_path, "n": n_per_pair, "seed": seed,
+               "resolution": resolution, "format": fmt, "overwrite": overwrite,
+               "max_px": max_px, "filter_sigma_px": filter_sigma_px}
+    if plot_warp is not None:  # --out is one PNG: the record goes beside it
+        with command_record("augment", record_path(out_path, folder=False),
+                            inputs={"image": plot_warp}, options=options) as rec:
+            rec.summary = _plot(plot_warp, out_path, seed, max_px, filter_sigma_px)
         return
     from geosim.augment.pipeline import load_pipeline
-    from geosim.augment.runner import run_augment
+    from geosim.augment.runner import check_augment_out, run_augment
 
-    pipeline = load_pipeline(config_path)
-    summary = run_augment(pairs_csv, pipeline, n=n_per_pair, out_dir=out_path, seed=seed,
-                          resolution=resolution, fmt=fmt, overwrite=overwrite)
-    click.echo(f"augmented {summary['pairs']} pairs × {summary['outputs_per_pair']} = "
-               f"{summary['augmented_pairs']} pairs ({summary['pairs_per_second']} pairs/s, "
-               f"seed {summary['seed']}) → {summary['out_dir']}")
+    check_augment_out(out_path, overwrite)  # before the record replaces the earlier one's
+    with command_record("augment", record_path(out_path, folder=True),
+                        inputs={"pairs": pairs_csv, "config": config_path},
+                        options=options) as rec:
+        pipeline = load_pipeline(config_path)
+        summary = run_augment(pairs_csv, pipeline, n=n_per_pair, out_dir=out_path, seed=seed,
+                              resolution=resolution, fmt=fmt, overwrite=overwrite)
+        rec.summary = (f"augmented {summary['pairs']} pairs × {summary['outputs_per_pair']} = "
+                       f"{summary['augmented_pairs']} pairs ({summary['pairs_per_second']} "
+                       f"pairs/s, seed {summary['seed']}) → {summary['out_dir']}")
+    click.echo(rec.summary)
     click.echo(f"boxes: {summary['boxes_in']} in, {summary['boxes_out']} out, "
                f"{summary['boxes_dropped']} dropped (barely visible); "
                f"{summary['off_grid_images']} images off the map grid (no geotransform)")
@@ -69,7 +81,7 @@ def augment(pairs_csv: Path | None, config_path: Path | None, n_per_pair: int, o
 
 
 def _plot(image_path: Path, out: Path, seed: int | None, max_px: float | None,
-          filter_sigma_px: float | None) -> None:
+          filter_sigma_px: float | None) -> str:
     import numpy as np
 
     from geosim.augment.io import read_preview
@@ -83,5 +95,7 @@ def _plot(image_path: Path, out: Path, seed: int | None, max_px: float | None,
     path, field = plot_local_warp(image, mask, out, max_px=m, filter_sigma_px=s,
                                   rng=np.random.default_rng(seed), px_scale=factor,
                                   title=f"local warp of {image_path.name}")
-    click.echo(f"local-warp figure → {path} (max {field.max_px * factor:.3g} px, filter σ "
-               f"{s * factor:.3g} px of the full-resolution image)")
+    text = (f"local-warp figure → {path} (max {field.max_px * factor:.3g} px, filter σ "
+            f"{s * factor:.3g} px of the full-resolution image)")
+    click.echo(text)
+    return text

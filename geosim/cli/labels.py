@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import click
@@ -44,19 +45,29 @@ def cattle_per_paddock(labels_path: Path, paddocks_path: Path, name_column: str,
     from geosim.labels.paddocks import cattle_per_paddock as count
     from geosim.labels.paddocks import check_paddocks, format_counts, write_counts_csv
     from geosim.labels.sources import read_cattle, read_paddocks
+    from geosim.record import command_record, record_path
     from geosim.validate import check_out_file
 
     if out is not None:  # before any work: the CSV must not replace an input
         check_out_file(out, {"--labels file": labels_path, "--paddocks file": paddocks_path})
-    cattle = read_cattle(labels_path)
-    paddocks, repairs = check_paddocks(read_paddocks(paddocks_path, name_column=name_column),
-                                       name_column)
-    for repair in repairs:
-        click.echo(f"geosim: warning: {paddocks_path}: {repair.message()}", err=True)
-    table = count(cattle, paddocks, name_column=name_column)
-    click.echo(format_counts(table))
+    # with --out the record goes beside the CSV (counts.csv.run.json); without, nothing is
+    # written, so nothing is recorded
+    record = (command_record("cattle-per-paddock", record_path(out, folder=False),
+                             inputs={"labels": labels_path, "paddocks": paddocks_path},
+                             options={"name_column": name_column})
+              if out is not None else contextlib.nullcontext())
+    with record as rec:
+        cattle = read_cattle(labels_path)
+        paddocks, repairs = check_paddocks(
+            read_paddocks(paddocks_path, name_column=name_column), name_column)
+        for repair in repairs:
+            click.echo(f"geosim: warning: {paddocks_path}: {repair.message()}", err=True)
+        table = count(cattle, paddocks, name_column=name_column)
+        click.echo(format_counts(table))
+        if out is not None:
+            write_counts_csv(table, out)
+            rec.summary = f"{len(table)} rows written to {out.name}"
     if out is not None:
-        write_counts_csv(table, out)
         click.echo(f"written {out}", err=True)
 
 
@@ -76,16 +87,23 @@ def movement(labels_path: Path, flight_a: str, flight_b: str, radius_m: float,
     """Match cattle one-to-one between two flights: stayed, moved, gone, appeared."""
     from geosim.labels.movement import cattle_movement, movement_summary, write_movement
     from geosim.labels.sources import read_cattle
+    from geosim.record import command_record, record_path
 
-    result = cattle_movement(read_cattle(labels_path), flight_a, flight_b, radius_m=radius_m,
-                             stayed_within_m=stayed_within_m)
-    counts = movement_summary(result)
-    moved = result.loc[result["category"] == "moved", "distance_m"]
-    click.echo(f"{flight_a} -> {flight_b} (radius {radius_m:g} m, stayed within "
-               f"{stayed_within_m:g} m)")
-    for cat, n in counts.items():
-        click.echo(f"  {cat:<9}{n:>6}")
-    if len(moved):
-        click.echo(f"  median distance moved: {moved.median():.2f} m")
-    geojson, csv = write_movement(result, out)
+    with command_record("movement", record_path(out, folder=True),
+                        inputs={"labels": labels_path},
+                        options={"from": flight_a, "to": flight_b, "radius_m": radius_m,
+                                 "stayed_within_m": stayed_within_m}) as rec:
+        result = cattle_movement(read_cattle(labels_path), flight_a, flight_b,
+                                 radius_m=radius_m, stayed_within_m=stayed_within_m)
+        counts = movement_summary(result)
+        moved = result.loc[result["category"] == "moved", "distance_m"]
+        click.echo(f"{flight_a} -> {flight_b} (radius {radius_m:g} m, stayed within "
+                   f"{stayed_within_m:g} m)")
+        for cat, n in counts.items():
+            click.echo(f"  {cat:<9}{n:>6}")
+        if len(moved):
+            click.echo(f"  median distance moved: {moved.median():.2f} m")
+        geojson, csv = write_movement(result, out)
+        rec.summary = f"{flight_a} -> {flight_b}: " + ", ".join(
+            f"{n} {cat}" for cat, n in counts.items())
     click.echo(f"written {geojson} and {csv}", err=True)

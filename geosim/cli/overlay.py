@@ -52,14 +52,23 @@ def overlay_check(site_file: Path | None, out: Path, a_path: Path | None, b_path
     if a_path is None and site_file is None:
         raise ConfigError("overlay-check: give a SITE_FILE (with its run folder --out) or "
                           "--a X.tif --b Y.tif")
+    from geosim.record import command_record, record_path
+
     if site_file is not None:
         pairs = run_pairs(out, load_site(site_file).flight_ids)
     else:
         pairs = [(None, a_path, b_path)]
-    results = [check(a, b, name=name, window_px=window_px, gsd_m=gsd_m)
-               for name, a, b in pairs]
-    out.mkdir(parents=True, exist_ok=True)
-    doc = write_overlay_outputs(results, out, max_shift_m=max_shift_m, dpi=dpi)
+    # in a site's run folder the step record joins the pipeline's run.json
+    inputs = {"site": site_file, **{f"{name or 'a_b'}.{k}": p for name, a, b in pairs
+                                    for k, p in (("a", a), ("b", b))}}
+    with command_record("overlay-check", record_path(out, folder=True), inputs=inputs,
+                        options={"max_shift_m": max_shift_m, "window_px": window_px,
+                                 "gsd_m": gsd_m, "dpi": dpi}) as rec:
+        results = [check(a, b, name=name, window_px=window_px, gsd_m=gsd_m)
+                   for name, a, b in pairs]
+        doc = write_overlay_outputs(results, out, max_shift_m=max_shift_m, dpi=dpi)
+        rec.summary = (f"{len(doc['pairs'])} pair(s), "
+                       f"{'ok' if doc['ok'] else 'NOT OK (shift above --max-shift-m)'}")
     for p in doc["pairs"]:
         ms = p["median_shift_m"]
         mag = p["median_shift_magnitude_m"]
