@@ -17,6 +17,7 @@ from affine import Affine
 from click.testing import CliRunner
 
 from geosim.cli.main import cli
+from tests.test_augment_cli import run_dir  # noqa: F401  (the fixture)
 
 X0, Y0 = 280000.0, 6175000.0
 
@@ -152,3 +153,38 @@ def test_augment_plot_warp_records_beside_the_png(tmp_path: Path) -> None:
     assert doc["inputs"]["image"]["sha256"] == _sha(src)
     assert _outputs_exist(doc, "augment", tmp_path) == ["fig.png"]
     assert doc["steps"]["augment"]["summary"]["text"] in res.stdout
+
+
+def test_augment_records_the_run_and_a_refusal_keeps_it(run_dir: Path,  # noqa: F811
+                                                        tmp_path: Path) -> None:
+    pairs = run_dir / "pairs.csv"
+    out = tmp_path / "aug"
+    res = CliRunner().invoke(cli, ["augment", "--pairs", str(pairs), "--n", "1",
+                                   "--out", str(out), "--seed", "3"])
+    assert res.exit_code == 0, res.output
+    doc = _record(out / "run.json")
+    assert doc["status"] == "ok" and doc["options"]["n"] == 1
+    assert doc["inputs"]["pairs"]["sha256"] == _sha(pairs)
+    outs = _outputs_exist(doc, "augment", out)
+    on_disk = sorted(str(p.relative_to(out)) for p in out.rglob("*")
+                     if p.is_file() and p.name != "run.json")
+    assert outs == on_disk and "augmented_pairs.csv" in outs
+    assert doc["steps"]["augment"]["summary"]["text"] in res.stdout
+    before = (out / "run.json").read_text()
+    res = CliRunner().invoke(cli, ["augment", "--pairs", str(pairs), "--out", str(out)])
+    assert res.exit_code == 2 and "already holds" in res.output
+    assert (out / "run.json").read_text() == before  # refused before recording
+
+
+def test_ctrl_c_is_recorded_interrupted(tmp_path: Path) -> None:
+    import pytest
+
+    from geosim.record import command_record
+
+    with pytest.raises(KeyboardInterrupt), command_record(
+            "movement", tmp_path / "run.json", inputs={}, options={}) as rec:
+        (tmp_path / "x.txt").write_text("not atomic")
+        rec.outputs.append(tmp_path / "x.txt")
+        raise KeyboardInterrupt
+    doc = json.loads((tmp_path / "run.json").read_text())
+    assert doc["status"] == "interrupted" and doc["steps"]["movement"]["outputs"] == ["x.txt"]
