@@ -6,8 +6,6 @@ from pathlib import Path
 
 import click
 
-from geosim.log import info as log_info
-
 
 @click.group()
 def samples() -> None:
@@ -23,7 +21,7 @@ def make(out: Path, seed: int) -> None:
     """Generate the sample site into --out."""
     from geosim.samples.generate import make_sample_site
 
-    summary = make_sample_site(out, seed=seed, echo=log_info)
+    summary = make_sample_site(out, seed=seed)
     cattle = ", ".join(f"{k} {v}" for k, v in summary["cattle_per_flight"].items())
     click.echo(f"sample site written to {out}/ in {summary['seconds']} s")
     click.echo(f"cattle per flight: {cattle}; satellite: {summary['satellite_cattle']}")

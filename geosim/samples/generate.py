@@ -23,7 +23,6 @@ import hashlib
 import math
 import time
 import zlib
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +35,7 @@ from shapely.geometry import Point, Polygon
 
 from geosim.io.atomic import write_json, write_text
 from geosim.io.raster import create_geotiff, provenance_tags, read_valid_mask, write_geotiff
+from geosim.log import get_logger
 from geosim.samples import cattle as cattle_mod
 from geosim.samples import flights as flights_mod
 from geosim.samples import labels as labels_mod
@@ -432,8 +432,7 @@ def _truth_document(seed: int, lonlat: tuple[float, float], world: Any, herd: An
     return truth
 
 
-def make_sample_site(out_dir: str | Path, *, seed: int = 0,
-                     echo: Callable[[str], None] | None = None) -> dict[str, Any]:
+def make_sample_site(out_dir: str | Path, *, seed: int = 0) -> dict[str, Any]:
     """Generate the sample site into ``out_dir``.
 
     Parameters
@@ -442,19 +441,18 @@ def make_sample_site(out_dir: str | Path, *, seed: int = 0,
         Output folder (created; existing files of the same names are replaced).
     seed
         Seed of every random choice. Seed 0 is the committed ``data/samples``.
-    echo
-        Where to report progress lines (default: silent).
 
     Returns
     -------
     dict
         Summary: files written, cattle per flight, satellite chain, seconds taken.
+        Progress lines (one per flight) go to the ``geosim.samples`` logger at INFO.
     """
     from tqdm import tqdm
 
     t_start = time.perf_counter()
     out = Path(out_dir)
-    say = echo or (lambda s: None)
+    say = get_logger("geosim.samples").info
     to_lonlat = Transformer.from_crs(WORLD_CRS, "EPSG:4326", always_xy=True)
     lon, lat = to_lonlat.transform(*CENTRE_XY)
 
