@@ -24,10 +24,13 @@ from geosim.errors import ConfigError
               help="UAV grid pixel size, metres (standalone mode).")
 @click.option("--sat-gsd", "sat_gsd_m", default=0.5, show_default=True, type=float,
               help="Satellite grid pixel size, metres (standalone mode).")
+@click.option("--dpi", default=100, show_default=True, type=click.IntRange(min=10, max=1200),
+              help="Resolution of the diagnosis figures (PNG dots per inch; their pixel size "
+                   "scales with it).")
 @click.option("--seed", default=0, show_default=True, type=int,
               help="Seed of the noise realisation in the refined simulation.")
 def diagnose(site_file: Path | None, uav: tuple[Path, ...], satellite: Path | None, out: Path,
-             uav_gsd_m: float, sat_gsd_m: float, seed: int) -> None:
+             uav_gsd_m: float, sat_gsd_m: float, dpi: int, seed: int) -> None:
     """Locate where simulation and the real satellite scene differ, name the missing physics,
     model it and refit.
 
@@ -39,7 +42,8 @@ def diagnose(site_file: Path | None, uav: tuple[Path, ...], satellite: Path | No
             raise ConfigError("give either SITE_FILE or --uav/--satellite, not both")
         from geosim.cli.common import run_steps
 
-        record = run_steps(site_file, out, ("diagnose",), satellite_required=True)
+        record = run_steps(site_file, out, ("diagnose",), satellite_required=True,
+                           options={"diagnose": {"dpi": dpi}})
         summary = record["steps"]["diagnose"]["summary"]
     else:
         if not uav or satellite is None:
@@ -52,7 +56,7 @@ def diagnose(site_file: Path | None, uav: tuple[Path, ...], satellite: Path | No
         site = site_from_images(list(uav), satellite, uav_gsd_m=uav_gsd_m, sat_gsd_m=sat_gsd_m,
                                 tile_px=max(1, round(sat_gsd_m / uav_gsd_m)) * 500)
         record = run_pipeline(site, out, only=["diagnose_images"],
-                              options={"diagnose_images": {"seed": seed}})
+                              options={"diagnose_images": {"seed": seed, "dpi": dpi}})
         click.echo(format_summary(record))
         summary = record["steps"]["diagnose_images"]["summary"]
     flights = summary.get("flights", {})

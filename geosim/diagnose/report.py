@@ -16,7 +16,8 @@ from geosim.io.atomic import atomic_path, write_json, write_text
 from geosim.io.raster import provenance_tags, write_geotiff
 
 __all__ = ["write_diagnosis", "write_combined", "FILES", "compare_with_truth",
-           "format_truth_comparison"]
+           "format_truth_comparison", "mismatch_maps_figure", "map_extent", "scale_bar_length",
+           "draw_scale_bar", "flights_figure", "DEFAULT_DPI"]
 
 FILES = {"satellite": "satellite_on_grid.tif", "baseline": "sim_baseline.tif",
          "refined": "sim_refined.tif"}
@@ -25,16 +26,89 @@ MAPS = {"residual_energy": "map_residual_energy.tif", "blur_ratio": "map_blur_ra
 
 
 
+DEFAULT_DPI = 100
+
+
 def _save_png(fig: Any, path: Path, *, dpi: int, tight: bool = True) -> str:
-    """Write a figure as PNG atomically, close it, and return the file name."""
+    """Write a figure as PNG atomically, close it, and return the file name.
+
+    The figure's title (its ``suptitle``) is also stored as the PNG's ``Title`` text
+    chunk, so a reader of the file alone knows which flight it shows.
+    """
     import matplotlib.pyplot as plt
 
     if tight:
         fig.tight_layout()
+    title = fig._suptitle.get_text() if fig._suptitle is not None else ""
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
+        fig.savefig(tmp, dpi=dpi, format="png", metadata={"Title": title} if title else None)
     plt.close(fig)
     return path.name
+
+
+def map_extent(transform: Affine, shape: tuple[int, int]) -> tuple[float, float, float, float]:
+    """``imshow`` extent (left, right, bottom, top) in map units of a north-up raster.
+
+    Parameters
+    ----------
+    transform
+        The raster's affine transform (no rotation).
+    shape
+        (rows, cols) of the raster.
+    """
+    rows, cols = shape
+    x0, y0 = transform * (0, 0)
+    x1, y1 = transform * (cols, rows)
+    return (min(x0, x1), max(x0, x1), min(y0, y1), max(y0, y1))
+
+
+def scale_bar_length(width_m: float) -> float:
+    """A round length (1, 2 or 5 × 10^k metres) close to a fifth of ``width_m``."""
+    if not np.isfinite(width_m) or width_m <= 0:
+        raise ValueError(f"map width {width_m} m: needs a positive width")
+    target = width_m / 5.0
+    k = np.floor(np.log10(target))
+    steps = np.array([1.0, 2.0, 5.0, 10.0]) * 10.0 ** k
+    return float(steps[np.argmin(np.abs(np.log(steps / target)))])
+
+
+def _format_m(length_m: float) -> str:
+    return f"{length_m:g} m" if length_m < 1000 else f"{length_m / 1000:g} km"
+
+
+def draw_scale_bar(ax: Any, extent: tuple[float, float, float, float]) -> tuple[float, str]:
+    """Draw a scale bar in the lower left of a map axes; returns (length in m, label).
+
+    The bar is a line in data (map) coordinates, so its length in map units is the
+    labelled length.
+    """
+    left, right, bottom, top = extent
+    length = scale_bar_length(right - left)
+    x0 = left + 0.05 * (right - left)
+    y0 = bottom + 0.06 * (top - bottom)
+    label = _format_m(length)
+    ax.plot([x0, x0 + length], [y0, y0], color="white", lw=4, solid_capstyle="butt",
+            gid="scale_bar_halo")
+    ax.plot([x0, x0 + length], [y0, y0], color="black", lw=2, solid_capstyle="butt",
+            gid="scale_bar")
+    ax.text(x0 + length / 2, y0 + 0.02 * (top - bottom), label, ha="center", va="bottom",
+            fontsize=8, color="black", gid="scale_bar_label",
+            bbox={"facecolor": "white", "alpha": 0.7, "lw": 0, "pad": 1})
+    return length, label
+
+
+def _crs_name(crs: CRS) -> str:
+    """'WGS 84 / UTM zone 56S, EPSG:32756' (pyproj's name and the EPSG code when known)."""
+    from pyproj import CRS as ProjCRS
+
+    epsg = crs.to_epsg()
+    name = ProjCRS.from_user_input(crs.to_wkt()).name
+    return f"{name}, EPSG:{epsg}" if epsg is not None else name
+
+
+def _flight_title(flight: str | None) -> str:
+    return f"flight {flight}" if flight else "diagnosis"
+
 
 def _regions_gdf(diag: Diagnosis, transform: Affine, crs: CRS):
     import geopandas as gpd
@@ -60,12 +134,12 @@ def _regions_gdf(diag: Diagnosis, transform: Affine, crs: CRS):
     return gdf
 
 
-def _plots(diag: Diagnosis, out: Path) -> list[str]:
+def _plots(diag: Diagnosis, out: Path, *, transform: Affine, crs: CRS, flight: str | None,
+           dpi: int) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
 
     p = diag.plots
     fy, fx = p["fy"], p["fx"]
@@ -121,7 +195,8 @@ def _plots(diag: Diagnosis, out: Path) -> list[str]:
     ax.set_ylabel("power spectrum (DN², grey level)")
     ax.set_title("Power spectra of the images as delivered", fontsize=10)
     ax.legend(fontsize=7)
-    written.append(_save_png(fig, out / "transfer_function.png", dpi=100, tight=True))
+    fig.suptitle(f"Transfer functions and spectra, {_flight_title(flight)}", fontsize=11)
+    written.append(_save_png(fig, out / "transfer_function.png", dpi=dpi, tight=True))
     # 2. noise vs brightness
     fig, ax = plt.subplots(figsize=(5.5, 4))
     if len(p["noise_brightness"]):
@@ -137,10 +212,36 @@ def _plots(diag: Diagnosis, out: Path) -> list[str]:
     ax.set_ylabel("noise variance (DN²)")
     ax.set_title("sensor_noise " + ("claimed" if p.get("noise_claimed") else "not claimed"),
                  fontsize=10)
+    fig.suptitle(f"Noise vs brightness, {_flight_title(flight)}", fontsize=11)
     ax.legend(fontsize=7)
-    written.append(_save_png(fig, out / "noise_vs_brightness.png", dpi=110, tight=True))
+    written.append(_save_png(fig, out / "noise_vs_brightness.png", dpi=dpi, tight=True))
     # 3. maps
-    fig, axes = plt.subplots(1, 4, figsize=(16, 4))
+    fig = mismatch_maps_figure(diag, transform=transform, crs=crs, flight=flight)
+    written.append(_save_png(fig, out / "mismatch_maps.png", dpi=dpi, tight=False))
+    return written
+
+
+def mismatch_maps_figure(diag: Diagnosis, *, transform: Affine, crs: CRS,
+                         flight: str | None = None) -> Any:
+    """The four mismatch maps in map coordinates, with a scale bar; returns the Figure.
+
+    Parameters
+    ----------
+    diag
+        The diagnosis (its ``maps`` and ``regions`` are drawn).
+    transform, crs
+        The 0.5 m grid of the maps: axes are easting / northing in metres of ``crs``.
+    flight
+        Named in the title ("flight X").
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    extent = map_extent(transform, diag.maps["residual_energy"].shape[-2:])
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4.6))
     for ax, (k, title) in zip(axes, (("residual_energy", "residual energy after refit (DN², log)"),
                                      ("blur_ratio", "LV real / LV baseline (log)"),
                                      ("gain", "local gain real vs baseline"),
@@ -153,25 +254,31 @@ def _plots(diag: Diagnosis, out: Path) -> list[str]:
             if k == "blur_ratio":  # symmetric about 1 on a log scale
                 span = max(hi, 1.0 / max(lo, 1e-6), 1.01)
                 lo, hi = 1.0 / span, span
-            im = ax.imshow(np.where(img > 0, img, np.nan),
+            im = ax.imshow(np.where(img > 0, img, np.nan), extent=extent,
                            norm=LogNorm(vmin=max(lo, 1e-6), vmax=max(hi, lo * 1.01)),
                            cmap="magma" if k == "residual_energy" else "RdBu_r")
         else:
             lo, hi = (np.percentile(fin, [2, 98]) if fin.size else (0.0, 1.0))
-            im = ax.imshow(img, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-6))
+            im = ax.imshow(img, extent=extent, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-6))
         ax.set_title(title, fontsize=10)
-        ax.set_axis_off()
+        ax.set_xlabel("easting (m)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.ticklabel_format(useOffset=False, style="plain")
+        draw_scale_bar(ax, extent)
         fig.colorbar(im, ax=ax, fraction=0.046)
+    axes[0].set_ylabel(f"northing (m)\n{_crs_name(crs)}", fontsize=8)
     for r in diag.regions[:20]:
         r0, c0, r1, c1 = r.bbox
-        axes[0].add_patch(plt.Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0, r1 - r0, fill=False,
+        (xa, ya), (xb, yb) = transform * (c0, r0), transform * (c1, r1)
+        axes[0].add_patch(plt.Rectangle((min(xa, xb), min(ya, yb)), abs(xb - xa), abs(yb - ya),
+                                        fill=False,
                                         ec="cyan" if r.kind == "scene_change" else "white"))
+    fig.suptitle(f"Mismatch maps, {_flight_title(flight)}", fontsize=11)
     fig.text(0.01, 0.01, "boxes: regions (cyan scene_change, white global); maps 2–4 in blocks "
              "of 16 px against the co-registered baseline (gain/offset blank where the block "
              "correlation < 0.5); colour limits at robust percentiles", fontsize=8)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
-    written.append(_save_png(fig, out / "mismatch_maps.png", dpi=90, tight=False))
-    return written
+    return fig
 
 
 def _markdown(s: dict[str, Any]) -> str:
@@ -245,9 +352,13 @@ def _f(v: Any) -> str:
 
 
 def write_diagnosis(diag: Diagnosis, out_dir: str | Path, *, transform: Affine, crs: CRS | str,
-                    sources: list[str] | None = None, extra: dict[str, Any] | None = None
-                    ) -> dict[str, Any]:
-    """Write all outputs of a diagnosis into ``out_dir``; returns the diagnosis.json dict."""
+                    sources: list[str] | None = None, extra: dict[str, Any] | None = None,
+                    dpi: int = DEFAULT_DPI) -> dict[str, Any]:
+    """Write all outputs of a diagnosis into ``out_dir``; returns the diagnosis.json dict.
+
+    The figures name ``extra["flight"]`` when given and are rendered at ``dpi`` (dots per
+    inch: the PNGs' pixel size scales with it).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     crs = CRS.from_user_input(crs)
@@ -266,7 +377,8 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path, *, transform: Affine, 
     write_geojson(gdf, out / "regions.geojson")
     if len(gdf):
         write_gpkg(gdf, out / "regions.gpkg", layer="regions")
-    plots = _plots(diag, out)
+    plots = _plots(diag, out, transform=transform, crs=crs, flight=(extra or {}).get("flight"),
+                   dpi=dpi)
     summary = dict(diag.summary)
     summary["n_regions"] = len(diag.regions)
     doc: dict[str, Any] = {
@@ -423,6 +535,7 @@ def _combined_markdown(doc: dict[str, Any], per: dict[str, dict[str, Any]],
                  f"{rf['physical_q_range'][1]} of real cameras. Median RMSE {b['rmse']:.2f} → "
                  f"{rf['rmse']:.2f} DN; median spectral error {b['spectral_error']:.3f} → "
                  f"{rf['spectral_error']:.3f}.")
+    lines.append(f"\n![{COMBINED_PLOT}]({COMBINED_PLOT})\n")
     lines.append("\n## Per flight\n")
     lines.append("| flight | baseline Q → refined Q | claimed | RMSE DN | spectral error |")
     lines.append("|---|---|---|---|---|")
@@ -442,21 +555,65 @@ def _combined_markdown(doc: dict[str, Any], per: dict[str, dict[str, Any]],
                  "regions of all flights (attribute `flight`).")
     for f in ids:
         sub = _markdown(per[f]).split("\n", 2)[2]  # drop the title
-        sub = sub.replace("\n## ", "\n#### ")
+        sub = sub.replace("\n## ", "\n#### ").replace("](", f"]({dirs[f]}/")  # its own figures
         lines.append(f"\n### Flight {f}\n\n{sub}")
     return "\n".join(lines) + "\n"
 
 
+COMBINED_PLOT = "flights_combined.png"
+
+
+def flights_figure(per: dict[str, dict[str, Any]], comb: dict[str, Any]) -> Any:
+    """Baseline and refined Q and RMSE of every flight beside the combined verdict.
+
+    Parameters
+    ----------
+    per
+        Each flight's diagnosis dict.
+    comb
+        The combined verdict (:func:`geosim.diagnose.combine.combine_flights`).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Titled "All flights (combined)" with the flight ids.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ids = list(per)
+    x = np.arange(len(ids))
+    fig, axes = plt.subplots(1, 2, figsize=(max(7.0, 1.2 * len(ids) + 4), 3.8))
+    for ax, key, unit in ((axes[0], "q", "Q"), (axes[1], "rmse", "RMSE (DN)")):
+        base = [per[f]["baseline"][key] for f in ids]
+        ref = [per[f]["refined"][key] for f in ids]
+        ax.bar(x - 0.2, base, 0.4, color="C0", label="baseline (paper's model)")
+        ax.bar(x + 0.2, ref, 0.4, color="C3", label="refined (with the flight's effects)")
+        ax.axhline(comb["refined"][key], color="k", ls="--", lw=1,
+                   label="combined refined (median)")
+        ax.set_xticks(x, ids, fontsize=8)
+        ax.set_xlabel("flight")
+        ax.set_ylabel(unit)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"All flights (combined): {', '.join(ids)}", fontsize=11)
+    return fig
+
+
 def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, reference: str,
                    dirs: dict[str, str], skipped: dict[str, str] | None = None,
-                   extra: dict[str, Any] | None = None) -> dict[str, Any]:
+                   extra: dict[str, Any] | None = None, dpi: int = DEFAULT_DPI
+                   ) -> dict[str, Any]:
     """Write the combined diagnosis of several flights into ``out_dir``.
 
     ``per`` holds each flight's diagnosis dict (as returned by :func:`write_diagnosis`,
     written to ``out_dir/dirs[flight]``). Writes ``diagnosis.json`` (the issue's schema
     for the combined verdict, plus ``flights``), ``report.md``, ``regions.geojson`` (all
     flights' regions, attribute ``flight``) and copies of the reference flight's
-    GeoTIFFs, maps and plots, so that ``files`` resolves at the top level.
+    GeoTIFFs, maps and plots (titled with the reference flight), so that ``files``
+    resolves at the top level, and ``flights_combined.png`` (every flight's Q and RMSE
+    beside the combined verdict, titled "All flights (combined)") at ``dpi``.
     """
     import geopandas as gpd
     import pandas as pd
@@ -489,11 +646,13 @@ def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, refer
     if len(gdf):
         write_gpkg(gdf, out / "regions.gpkg", layer="regions")
     comb = combine_flights(per, reference=reference)
+    plots = [*ref.get("plots", []),
+             _save_png(flights_figure(per, comb), out / COMBINED_PLOT, dpi=dpi)]
     flights = {f: {**_jsonable(d), "dir": dirs[f]} for f, d in per.items()}
     doc: dict[str, Any] = {
         "grid": ref["grid"], **comb,
         "regions": "regions.geojson",
-        "files": dict(FILES), "maps": dict(MAPS), "plots": list(ref.get("plots", [])),
+        "files": dict(FILES), "maps": dict(MAPS), "plots": plots,
         "report": "report.md", "reference_flight": reference,
         "flights": flights, "flights_skipped": dict(skipped or {}),
         "n_regions": int(len(gdf)),

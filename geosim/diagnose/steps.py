@@ -35,7 +35,7 @@ from rasterio.warp import transform_bounds
 
 from geosim.diagnose.engine import diagnose_arrays
 from geosim.diagnose.locate import laplacian_variance
-from geosim.diagnose.report import write_diagnosis
+from geosim.diagnose.report import DEFAULT_DPI, write_diagnosis
 from geosim.diagnose.simulate import QSimulator
 from geosim.engine import parallel_map
 from geosim.errors import DiagnosisError, ExtentError
@@ -100,8 +100,10 @@ def diagnose_grids(uav: np.ndarray, uav_valid: np.ndarray, sat: np.ndarray,
                    sat_valid: np.ndarray, sat_transform: Affine, crs: CRS, out_dir: Path, *,
                    phi: int, q_base: float | None = None, seed: int = 0,
                    q_min: float = 0.5, q_max: float = 8.0, sources: list[str] | None = None,
-                   extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Diagnose co-gridded arrays (UAV at sat/phi, satellite at the sat grid) and write."""
+                   extra: dict[str, Any] | None = None, dpi: int = DEFAULT_DPI
+                   ) -> dict[str, Any]:
+    """Diagnose co-gridded arrays (UAV at sat/phi, satellite at the sat grid) and write
+    (figures at ``dpi``)."""
     uav, sat = common_bands(uav, sat)
     sim = QSimulator(uav.astype(np.float32), phi=phi, valid=uav_valid, q_min=0.6)
     s0 = sim(2.0)
@@ -111,7 +113,7 @@ def diagnose_grids(uav: np.ndarray, uav_valid: np.ndarray, sat: np.ndarray,
     diag = diagnose_arrays(sat, sim, q_base=q_base, rng=np.random.default_rng(seed),
                            valid=valid, gsd_m=abs(sat_transform.a), q_lo=0.7)
     doc = write_diagnosis(diag, out_dir, transform=sat_transform, crs=crs, sources=sources,
-                          extra=extra)
+                          extra=extra, dpi=dpi)
     return doc
 
 
@@ -190,6 +192,7 @@ class DiagnoseFlightTask:
     seed: int
     q_min: float
     q_max: float
+    dpi: int = DEFAULT_DPI
 
 
 def diagnose_flight_task(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
@@ -199,14 +202,14 @@ def diagnose_flight_task(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | Non
         kw = task.load()
         return diagnose_grids(phi=task.phi, seed=task.seed, q_min=task.q_min,
                               q_max=task.q_max, out_dir=task.out_dir,
-                              extra={"flight": task.flight}, **kw), None
+                              extra={"flight": task.flight}, dpi=task.dpi, **kw), None
     except (DiagnosisError, ExtentError) as exc:
         return None, str(exc)
 
 
 def diagnose_flights(loaders: list[tuple[str, Callable[[], dict[str, Any]]]], out_dir: Path, *,
                      reference: str | None, phi: int, seed: int = 0, q_min: float = 0.5,
-                     q_max: float = 8.0) -> dict[str, Any]:
+                     q_max: float = 8.0, dpi: int = DEFAULT_DPI) -> dict[str, Any]:
     """Diagnose several flights one at a time and write the combined verdict.
 
     Parameters
@@ -233,7 +236,7 @@ def diagnose_flights(loaders: list[tuple[str, Callable[[], dict[str, Any]]]], ou
     skipped: dict[str, str] = {}
     taken: set[str] = set()
     tasks = [DiagnoseFlightTask(fid, load, out_dir / _flight_dir(fid, taken), phi=phi,
-                                seed=seed + 1000 * i, q_min=q_min, q_max=q_max)
+                                seed=seed + 1000 * i, q_min=q_min, q_max=q_max, dpi=dpi)
              for i, (fid, load) in enumerate(loaders)]
     for task, (doc, why) in zip(tasks, parallel_map(diagnose_flight_task, tasks,
                                                     desc="diagnose flights"), strict=True):
@@ -246,7 +249,7 @@ def diagnose_flights(loaders: list[tuple[str, Callable[[], dict[str, Any]]]], ou
                              "scene (" + "; ".join(f"{k}: {v}" for k, v in skipped.items())
                              + "); give flights that overlap the satellite scene")
     ref = reference if reference in per else next(iter(per))
-    return write_combined(per, out_dir, reference=ref, dirs=dirs, skipped=skipped)
+    return write_combined(per, out_dir, reference=ref, dirs=dirs, skipped=skipped, dpi=dpi)
 
 
 def _read_q_base(path: Path, flight: str) -> float | None:
@@ -297,7 +300,7 @@ def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> dict[str
             "sources": [str(sat_path), str(uav_path)]}
 
 
-def run_diagnose(site: Any, out: RunPath) -> StepResult:
+def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResult:
     """Pipeline step ``diagnose``: reads the run folder, writes ``diagnosis/`` in it.
 
     Every flight of the site is diagnosed against the satellite scene (flights without
@@ -312,7 +315,7 @@ def run_diagnose(site: Any, out: RunPath) -> StepResult:
     loaders = [(f.id, functools.partial(_read_flight, run, sat_path, f.id, phi))
                for f in site.flights]
     doc = diagnose_flights(loaders, run.diagnosis_dir, reference=reference, phi=phi,
-                           q_min=site.parameters.q_min, q_max=site.parameters.q_max)
+                           q_min=site.parameters.q_min, q_max=site.parameters.q_max, dpi=dpi)
     summary = _summary(doc, run.diagnosis_dir)
     # the bundled sample site ships its ground truth: put fitted and true side by side
     site_path = getattr(site, "path", None)
@@ -349,7 +352,8 @@ def _to_grid(path: Path, crs: CRS, transform: Affine, shape: tuple[int, int], wh
 def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
                     out_dir: str | Path, *, uav_gsd_m: float = 0.05, sat_gsd_m: float = 0.5,
                     crs: str | None = None, seed: int = 0, q_min: float = 0.5,
-                    q_max: float = 8.0, max_sat_px: int = MAX_SAT_PX) -> dict[str, Any]:
+                    q_max: float = 8.0, max_sat_px: int = MAX_SAT_PX, dpi: int = DEFAULT_DPI
+                    ) -> dict[str, Any]:
     """Standalone diagnosis from GeoTIFFs in any CRS, every ``--uav`` against the satellite.
 
     The satellite's CRS is used when projected (else the UTM zone of its centre, or
@@ -408,11 +412,12 @@ def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
         loaders.append((fid, lambda p=Path(p): load(p)))
     out = Path(out_dir)
     doc = diagnose_flights(loaders, out, reference=ids[0], phi=phi, seed=seed, q_min=q_min,
-                           q_max=q_max)
+                           q_max=q_max, dpi=dpi)
     return _summary(doc, out)
 
 
-def run_diagnose_images(site: Any, out: RunPath, *, seed: int = 0) -> StepResult:
+def run_diagnose_images(site: Any, out: RunPath, *, seed: int = 0, dpi: int = DEFAULT_DPI
+                        ) -> StepResult:
     """Pipeline step of ``geosim diagnose --uav ... --satellite ...`` (standalone).
 
     The site's flights (any CRS, as given) are diagnosed against its satellite scene with
@@ -424,7 +429,7 @@ def run_diagnose_images(site: Any, out: RunPath, *, seed: int = 0) -> StepResult
     p = site.parameters
     summary = diagnose_images([f.image for f in site.flights], site.satellite.image, run.root,
                               uav_gsd_m=p.uav_gsd_m, sat_gsd_m=p.sat_gsd_m, seed=seed,
-                              q_min=p.q_min, q_max=p.q_max)
+                              q_min=p.q_min, q_max=p.q_max, dpi=dpi)
     text = summary.pop("text")
     outputs = [run.rel(f) for f in sorted(run.root.rglob("*"))
                if f.is_file() and f != run.run_json and f.stat().st_mtime >= started - 1.0]
