@@ -133,3 +133,46 @@ def test_diagnose_grids_figures_name_flight_and_follow_dpi(tmp_path):
             if name == "mismatch_maps.png":
                 assert im.size == (640, 184)   # 16 × 4.6 in at 40 dpi
     assert "![mismatch_maps](mismatch_maps.png)" in (tmp_path / "report.md").read_text()
+
+
+def test_cli_dpi_and_combined_figures(tmp_path):
+    """`geosim diagnose --uav A --uav B --dpi 40`: flight titles, combined figure, embeds."""
+    import json
+
+    from click.testing import CliRunner
+
+    from geosim.cli.main import cli
+    from geosim.diagnose.simulate import QSimulator
+    from geosim.io.raster import write_geotiff
+    from tests.test_diagnose_effects import textured_uav
+
+    uav = textured_uav(192, seed=5)
+    real = np.clip(np.round(QSimulator(uav, phi=2, q_min=0.7)(1.4)), 0, 255).astype(np.uint8)
+    for name in ("fa", "fb"):
+        write_geotiff(tmp_path / f"{name}.tif", np.clip(uav, 0, 255).astype(np.uint8),
+                      transform=Affine(0.25, 0, 500000.0, 0, -0.25, 6200000.0),
+                      crs="EPSG:32756")
+    write_geotiff(tmp_path / "sat.tif", real,
+                  transform=Affine(0.5, 0, 500000.0, 0, -0.5, 6200000.0), crs="EPSG:32756")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(cli, ["diagnose", "--uav", str(tmp_path / "fa.tif"), "--uav",
+                                   str(tmp_path / "fb.tif"), "--satellite",
+                                   str(tmp_path / "sat.tif"), "--uav-gsd", "0.25", "--dpi",
+                                   "40", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "diagnosis.json").read_text())
+    assert "flights_combined.png" in doc["plots"]
+    with Image.open(out / "flights_combined.png") as im:
+        assert "All flights (combined): fa, fb" in im.info["Title"]
+    for f in ("fa", "fb"):
+        d = doc["flights"][f]["dir"]
+        with Image.open(out / d / "mismatch_maps.png") as im:
+            assert im.info["Title"] == f"Mismatch maps, flight {f}"
+            assert im.size == (640, 184)   # 16 × 4.6 in at --dpi 40
+    with Image.open(out / "mismatch_maps.png") as im:   # the reference flight's copy
+        assert im.info["Title"] == "Mismatch maps, flight fa"
+    report = (out / "report.md").read_text()
+    assert "![flights_combined.png](flights_combined.png)" in report
+    assert f"]({doc['flights']['fb']['dir']}/mismatch_maps.png)" in report
+    assert json.loads((out / "run.json").read_text())["steps"]["diagnose_images"][
+        "options"]["dpi"] == 40
