@@ -2,14 +2,15 @@
 
 The pure estimation is :mod:`geosim.align.field`; this module adapts it to rasters:
 
-* :func:`measure_local_shifts` — window shifts between two aligned rasters, read strip by
-  strip (memory bounded by ``window_px`` × a column chunk);
+* :func:`measure_local_shifts` — window shifts between two aligned rasters (files, or read
+  on the fly through a flight's composed warp), strip by strip (memory bounded by
+  ``window_px`` × a column chunk);
 * :func:`sample_points` — for the pixel centres of any destination window (given its
-  transform), the map points of the *globally corrected* flight to sample: ``p + D(p)``.
-  This is the seam a composed, windowed resampler calls per output window;
-* :func:`apply_local_alignment` — resample a gridded flight onto the aligned grid once,
-  through the composed mapping (aligned point → field → global correction → grid pixel),
-  window by window with ``cv2.remap``;
+  transform), the map points of the *globally corrected* flight to sample: ``p + D(p)``;
+* :func:`with_field` — the flight's composed warp (:class:`geosim.prepare.onewarp.ComposedWarp`)
+  with the field plugged in, so the flight is resampled **once**, from its original file,
+  onto the aligned grid (aligned pixel → map → field → inverse global correction → flight
+  CRS → source pixel), window by window, by :func:`geosim.prepare.onewarp.warp_raster_task`;
 * :func:`write_field_geotiff` / :func:`read_field_geotiff` — the field as a 2-band GeoTIFF
   (``dx_m``, ``dy_m``; the mask marks where it was estimated, masked nodes keep the global
   model), and :func:`move_points` for labels.
@@ -17,12 +18,10 @@ The pure estimation is :mod:`geosim.align.field`; this module adapts it to raste
 
 from __future__ import annotations
 
-import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
-import cv2
 import numpy as np
 import rasterio
 from affine import Affine
@@ -37,8 +36,9 @@ from geosim.align.field import (
 )
 from geosim.align.local import window_starts
 from geosim.errors import InputFileError
-from geosim.io.raster import create_geotiff, iter_windows, read_valid_mask, write_geotiff
+from geosim.io.raster import write_geotiff
 from geosim.prepare.alignment import read_grey_window
+from geosim.prepare.onewarp import ComposedWarp
 
 #: Window side and step (UAV px) of the local field's phase correlation.
 LOCAL_FIELD_WINDOW_PX = 256
@@ -50,7 +50,16 @@ FIELD_BANDS = ("dx_m", "dy_m")
 # --------------------------------------------------------------------------- measuring
 
 
-def measure_local_shifts(ref_path: str | os.PathLike[str], mov_path: str | os.PathLike[str], *,
+GreySource = str | os.PathLike[str] | Callable[[Window], tuple[np.ndarray, np.ndarray]]
+
+
+def _grey_reader(source: GreySource) -> Callable[[Window], tuple[np.ndarray, np.ndarray]]:
+    if callable(source):
+        return source
+    return lambda win: read_grey_window(source, win)
+
+
+def measure_local_shifts(ref: GreySource, mov: GreySource, *, shape: tuple[int, int] | None = None,
                          window_px: int = LOCAL_FIELD_WINDOW_PX,
                          step_px: int = LOCAL_FIELD_STEP_PX, windows_per_chunk: int = 16,
                          progress: bool | None = None, what: str = "flight") -> WindowShifts:
@@ -59,14 +68,28 @@ def measure_local_shifts(ref_path: str | os.PathLike[str], mov_path: str | os.Pa
     Rows of windows are read as strips of ``window_px`` rows, in column chunks of
     ``windows_per_chunk`` windows, so memory does not grow with the raster.
 
+    Parameters
+    ----------
+    ref, mov
+        Each a raster path or a reader ``window -> (grey float32, valid bool)`` (e.g.
+        :class:`geosim.prepare.onewarp.WarpedGreyReader`: the globally aligned flight read
+        on the fly through its composed warp, nothing written).
+    shape
+        ``(rows, cols)`` of the grid (default: read from ``ref``, which must then be a path).
+
     Returns
     -------
     WindowShifts
         Centres in the rasters' pixel-centre coordinates; every window ``accepted`` or
         ``unmeasured`` (apply :func:`geosim.align.field.reject_outliers` next).
     """
-    with rasterio.open(ref_path) as ds:
-        width, height = ds.width, ds.height
+    if shape is None:
+        if callable(ref):
+            raise TypeError("measure_local_shifts: give shape when ref is a reader")
+        with rasterio.open(ref) as ds:
+            shape = (ds.height, ds.width)
+    height, width = int(shape[0]), int(shape[1])
+    read_ref, read_mov = _grey_reader(ref), _grey_reader(mov)
     sr = window_starts(height, window_px, step_px)
     sc = window_starts(width, window_px, step_px)
     shape = (len(sr), len(sc))
@@ -80,8 +103,8 @@ def measure_local_shifts(ref_path: str | os.PathLike[str], mov_path: str | os.Pa
         starts = chunks[k]
         c0 = int(starts[0])
         win = Window(c0, int(sr[i]), int(starts[-1]) - c0 + window_px, window_px)
-        rg, rv = read_grey_window(ref_path, win)
-        mg, mv = read_grey_window(mov_path, win)
+        rg, rv = read_ref(win)
+        mg, mv = read_mov(win)
         if not (rv & mv).any():
             continue
         s = measure_window_shifts(rg, mg, valid=rv & mv, window_px=window_px, step_px=step_px)
@@ -130,105 +153,16 @@ def sample_points(field: DisplacementField | None, dst_transform: Affine,
     return (x, y) if field is None else field.apply(x, y)
 
 
-def remap_block(image: np.ndarray, valid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, *,
-                interpolation: int = cv2.INTER_CUBIC) -> tuple[np.ndarray, np.ndarray]:
-    """Resample one block at per-pixel source positions (pixel centres at integers).
+def with_field(warp: ComposedWarp, field: DisplacementField) -> ComposedWarp:
+    """The flight's composed warp (global correction ``C⁻¹`` already set) with its field.
 
-    Parameters
-    ----------
-    image
-        ``(bands, rows, cols)`` source block.
-    valid
-        ``(rows, cols)`` bool source mask.
-    map_x, map_y
-        ``(out_rows, out_cols)`` source column / row of each output pixel (float32).
-
-    Returns
-    -------
-    (image, valid)
-        Output pixels (input dtype, 0 where invalid) and a conservative mask: valid only
-        where every source pixel under the bicubic kernel was valid.
+    Aligned pixel centre ``p`` → ``p + D(p)`` (:meth:`DisplacementField.apply`, the field
+    convention) → ``C⁻¹`` → flight CRS → source pixel of the *original* flight: one bicubic
+    interpolation (:func:`geosim.prepare.onewarp.warp_raster_task`), the field evaluated on
+    the warp's lattice nodes. Picklable (the field pickles with its arrays), so it runs as an
+    engine task on any worker.
     """
-    mx = np.ascontiguousarray(map_x, dtype=np.float32)
-    my = np.ascontiguousarray(map_y, dtype=np.float32)
-    bands = [cv2.remap(np.ascontiguousarray(image[b]), mx, my, interpolation,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-             for b in range(image.shape[0])]
-    out = np.stack(bands)
-    core = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)) if not valid.all() \
-        else valid.astype(np.uint8)
-    mw = cv2.remap(core.astype(np.float32), mx, my, cv2.INTER_LINEAR,
-                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    ok = mw >= 0.999
-    out[:, ~ok] = 0
-    return out, ok
-
-
-def _source_coords(field: DisplacementField, m_grid: np.ndarray, grid_transform: Affine,
-                   gwin: Window) -> tuple[np.ndarray, np.ndarray]:
-    """Grid corner coordinates of the flight to sample for each pixel of ``gwin``."""
-    dst_t = grid_transform * Affine.translation(gwin.col_off, gwin.row_off)
-    x, y = sample_points(field, dst_t, (int(gwin.height), int(gwin.width)))
-    inv = ~grid_transform
-    gc = inv.a * x + inv.b * y + inv.c
-    gr = inv.d * x + inv.e * y + inv.f
-    m = np.asarray(m_grid, dtype=float)
-    return m[0, 0] * gc + m[0, 1] * gr + m[0, 2], m[1, 0] * gc + m[1, 1] * gr + m[1, 2]
-
-
-def apply_local_alignment(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str], *,
-                          m_grid: np.ndarray, field: DisplacementField, out_window: Window,
-                          block_px: int = 2048, tags: Mapping[str, str] | None = None,
-                          what: str = "flight", progress: bool | None = None
-                          ) -> dict[str, Any]:
-    """Resample a gridded flight onto the aligned grid through global correction + field.
-
-    One interpolation per pixel: aligned pixel centre ``p`` → ``p + D(p)`` (field) →
-    ``m_grid`` (global correction, grid corner coordinates) → source pixel; bicubic,
-    window by window, conservative mask (as :func:`geosim.prepare.alignment.apply_alignment`).
-
-    Returns
-    -------
-    dict
-        ``path``, ``valid_px``.
-    """
-    valid_px = 0
-    with rasterio.open(src_path) as src:
-        gt = src.transform
-        # the field moves sources by at most its largest displacement: pad the read by it
-        pad = 4 + int(math.ceil(float(field.magnitude_m().max(initial=0.0)) / abs(gt.a)))
-        grid_shape = (src.height, src.width)
-        transform = gt * Affine.translation(int(out_window.col_off), int(out_window.row_off))
-        with create_geotiff(dst_path, width=int(out_window.width), height=int(out_window.height),
-                            count=src.count, dtype=src.dtypes[0], crs=src.crs,
-                            transform=transform, band_descriptions=[
-                                d or f"band {i}" for i, d in enumerate(src.descriptions, 1)],
-                            tags=tags, internal_mask=True) as dst:
-            dst.colorinterp = list(src.colorinterp)
-            blocks = list(iter_windows(int(out_window.width), int(out_window.height),
-                                       block_px=block_px))
-            for blk in tqdm(blocks, desc=f"align {what} (local)", unit="block", leave=False,
-                            disable=None if progress is None else not progress):
-                gwin = Window(out_window.col_off + blk.col_off, out_window.row_off + blk.row_off,
-                              blk.width, blk.height)
-                h, w = int(blk.height), int(blk.width)
-                sx, sy = _source_coords(field, m_grid, gt, gwin)
-                c0 = max(0, math.floor(float(sx.min())) - pad)
-                r0 = max(0, math.floor(float(sy.min())) - pad)
-                c1 = min(grid_shape[1], math.ceil(float(sx.max())) + pad)
-                r1 = min(grid_shape[0], math.ceil(float(sy.max())) + pad)
-                if c1 <= c0 or r1 <= r0:
-                    out = np.zeros((src.count, h, w), dtype=src.dtypes[0])
-                    ok = np.zeros((h, w), dtype=bool)
-                else:
-                    swin = Window(c0, r0, c1 - c0, r1 - r0)
-                    img = src.read(window=swin)
-                    valid = read_valid_mask(src, window=swin)
-                    out, ok = remap_block(img, valid, sx - (c0 + 0.5), sy - (r0 + 0.5))
-                dst.write(out, window=blk)
-                dst.write_mask(ok.astype(np.uint8) * 255, window=blk)
-                valid_px += int(ok.sum())
-    return {"path": str(dst_path), "valid_px": valid_px}
+    return warp.with_correction(Affine(*warp.aligned_to_stated[:6]), field.apply)
 
 
 # --------------------------------------------------------------------------- the field file

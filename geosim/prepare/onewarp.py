@@ -377,22 +377,51 @@ def warp_raster_task(task: WarpRasterTask) -> WarpRasterRecord:
     return WarpRasterRecord(str(task.dst_path), valid_px, len(bands), dtype, source_crs)
 
 
+def read_grey_warped(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int], *,
+                     src: rasterio.DatasetReader | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Grey level (BT.601 luma, float32) and mask of a destination window through ``warp``.
+
+    The same pixels as the window of the raster :func:`warp_raster_task` writes for
+    ``warp`` (e.g. a globally aligned flight), without writing it.
+    """
+    from geosim.align.phasecorr import as_grey
+
+    if src is None:
+        with rasterio.open(warp.src_path) as ds:
+            return read_grey_warped(warp, dst_transform, shape, src=ds)
+    bands = image_band_indexes(src)
+    bands = bands[:3] if len(bands) >= 3 else bands[:1]
+    img, valid = read_warped(warp, dst_transform, shape, src=src, bands=bands)
+    return as_grey(img), valid
+
+
+@dataclass(frozen=True)
+class WarpedGreyReader:
+    """Picklable ``window -> (grey, valid)`` of a flight through its warp onto a grid window.
+
+    ``transform`` is the destination raster's affine (the site grid offset by whole pixels);
+    windows are in its pixels.
+    """
+
+    warp: ComposedWarp
+    transform: tuple[float, ...]
+
+    def __call__(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
+        t = _aff(self.transform) @ Affine.translation(int(window.col_off), int(window.row_off))
+        return read_grey_warped(self.warp, t, (int(window.height), int(window.width)))
+
+
 def read_grey_on_grid(warp: ComposedWarp, window: Window) -> tuple[np.ndarray, np.ndarray]:
     """Grey level (BT.601 luma, float32) and mask of a site-grid window, read on the fly.
 
     Replaces reading ``grid/<flight>.tif`` for registration: the same composed warp
     with the identity correction.
     """
-    from geosim.align.phasecorr import as_grey
-
     g = _aff(warp.grid_transform)
     t = g @ Affine.translation(int(window.col_off), int(window.row_off))
-    with rasterio.open(warp.src_path) as src:
-        bands = image_band_indexes(src)
-        bands = bands[:3] if len(bands) >= 3 else bands[:1]
-        img, valid = read_warped(warp.with_correction(Affine.identity()), t,
-                                 (int(window.height), int(window.width)), src=src, bands=bands)
-    return as_grey(img), valid
+    return read_grey_warped(warp.with_correction(Affine.identity()), t,
+                            (int(window.height), int(window.width)))
 
 
 def describe(warp: ComposedWarp) -> dict[str, Any]:

@@ -241,18 +241,6 @@ def _identity_anchor(center_m: list[float]) -> dict[str, Any]:
             "method": ANCHOR_NONE_METHOD, "model": "identity"}
 
 
-def _flights_on_grid(site: SiteConfig, run: RunDir, grid: SiteGrid) -> dict[str, Path]:
-    """``grid/<flight>.tif`` of every flight, written (identity warp) where absent."""
-    paths = {f.id: run.grid_raster(f.id) for f in site.flights}
-    tasks = [WarpRasterTask(ComposedWarp.for_flight(f.image, grid.crs, grid.uav_transform),
-                            str(paths[f.id]), tuple(grid.uav_transform)[:6], grid.uav_shape,
-                            BLOCK_PX, provenance_tags("grid", {"resampling": "bicubic"},
-                                                      [f.image]), f"flight {f.id}")
-             for f in site.flights if not paths[f.id].is_file()]
-    parallel_map(warp_raster_task, tasks)
-    return paths
-
-
 @contextlib.contextmanager
 def _reference_on_grid(site: SiteConfig, run: RunDir, grid: SiteGrid, window: Window
                        ) -> Iterator[tuple[Path, Window]]:
@@ -349,69 +337,80 @@ def anchor_to_satellite(site: SiteConfig, out: RunPath, grid: SiteGrid, window: 
 
 
 def _local_fields(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
-                  m_grids: dict[str, np.ndarray], gpath: dict[str, Path],
-                  params: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """``align_model = "local"``: estimate each flight's displacement field and re-resample.
+                  tasks: dict[str, WarpRasterTask], params: dict[str, Any]
+                  ) -> tuple[dict[str, dict[str, Any]], list[WarpRasterTask]]:
+    """``align_model = "local"``: estimate each flight's displacement field.
 
-    The field is measured between the globally aligned flight and the aligned reference
-    (``aligned/``), fitted (:mod:`geosim.align.field`), written to
-    ``alignment_field/<flight>.tif`` and the flight is resampled again from
-    ``grid/<flight>.tif`` through the composed mapping (one interpolation), replacing its
-    global-only ``aligned/<flight>.tif``. Returns the ``local_field`` record per flight.
+    The field is measured between the aligned reference (``aligned/<ref>.tif``, written
+    first) and the globally aligned flight read on the fly through its composed warp
+    (nothing written), fitted (:mod:`geosim.align.field`) and written to
+    ``alignment_field/<flight>.tif``. Returns the ``local_field`` record per flight and the
+    other flights' warp tasks with the field plugged into the composed warp: each flight is
+    then resampled once, from its original file, onto the aligned grid.
     """
+    from dataclasses import replace
+
     from geosim.align.field import fit_field, reject_outliers
     from geosim.prepare import local_align as la
+    from geosim.prepare.onewarp import WarpedGreyReader
 
     ref_id = site.reference_flight
     aligned_transform = grid.uav_window_transform(awin)
     shape = (int(awin.height), int(awin.width))
     records: dict[str, dict[str, Any]] = {}
+    local_tasks = []
     for f in site.flights:
         if f.id == ref_id:
             continue
-        shifts = la.measure_local_shifts(run.aligned(ref_id), run.aligned(f.id), what=f.id)
+        task = tasks[f.id]
+        shifts = la.measure_local_shifts(run.aligned(ref_id),
+                                         WarpedGreyReader(task.warp, task.dst_transform),
+                                         shape=shape, what=f.id)
         shifts = reject_outliers(shifts, min_confidence=site.parameters.min_align_confidence)
         field = fit_field(shifts, aligned_transform, shape)
         rel = run.rel(run.alignment_field(f.id))
-        tags = provenance_tags("align", params, [run.aligned(ref_id), gpath[f.id]],
+        tags = provenance_tags("align", params, [run.aligned(ref_id), f.image],
                                base_dir=run.root)
         la.write_field_geotiff(run.alignment_field(f.id), field, grid.crs, tags=tags)
-        la.apply_local_alignment(gpath[f.id], run.aligned(f.id),
-                                 m_grid=m_grids[f.id], field=field, out_window=awin,
-                                 block_px=BLOCK_PX, what=f.id, tags=tags)
+        warp_tags = provenance_tags(
+            "align", {**params, "resampled": "once, from the original flight, through the "
+                      "global correction and the local field"},
+            [f.image, run.alignment_field(f.id)], base_dir=run.root)
+        local_tasks.append(replace(task, warp=la.with_field(task.warp, field), tags=warp_tags))
         records[f.id] = la.field_record(field, shifts, rel)
-    return records
+    return records, local_tasks
 
 
-def _warp_aligned(site: SiteConfig, run: RunDir, grid: SiteGrid,
-                  warps: dict[str, ComposedWarp], entries: dict[str, dict[str, Any]],
-                  rwin: Window, awin: Window, params: dict[str, Any]
-                  ) -> tuple[dict[str, np.ndarray], int]:
-    """Write ``aligned/<flight>.tif``: one warp from each original flight onto the aligned
-    grid through its correction (engine tasks, resumable: a flight whose raster was made by
-    the same warp from the same file is skipped). Returns each flight's 3×3 grid-pixel
-    correction matrix and how many flights were skipped."""
+def _aligned_tasks(site: SiteConfig, run: RunDir, grid: SiteGrid,
+                   warps: dict[str, ComposedWarp], entries: dict[str, dict[str, Any]],
+                   rwin: Window, awin: Window, params: dict[str, Any]
+                   ) -> dict[str, WarpRasterTask]:
+    """The engine tasks writing ``aligned/<flight>.tif``: one warp from each original flight
+    onto the aligned grid through its global correction."""
     aligned_transform = grid.uav_window_transform(awin)
     g3 = al._3x3(grid.uav_transform)
-    m_grids: dict[str, np.ndarray] = {}
-    tasks = []
+    tasks = {}
     for f in site.flights:
         if site.anchor == "satellite":
             m_grid = np.vstack([np.array(entries[f.id]["matrix_grid_px"]), [0.0, 0.0, 1.0]])
         else:
             m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
-        m_grids[f.id] = m_grid
         # C⁻¹ in map coordinates: aligned frame → the flight's stated frame
         c_inv = al._affine_from_3x3(g3 @ m_grid @ np.linalg.inv(g3))
-        tasks.append(WarpRasterTask(
+        tasks[f.id] = WarpRasterTask(
             warps[f.id].with_correction(c_inv), str(run.aligned(f.id)),
             tuple(aligned_transform)[:6], (int(awin.height), int(awin.width)), BLOCK_PX,
             provenance_tags("align", {**params, "resampled": "once, from the original flight"},
-                            [f.image], base_dir=run.root), f.id))
-    n_skipped = sum(parallel_map(run_resumable, [
+                            [f.image], base_dir=run.root), f.id)
+    return tasks
+
+
+def _run_warps(run: RunDir, tasks: list[WarpRasterTask]) -> int:
+    """Run warp tasks (resumable: a raster made by the same task — warp, field, tags — from
+    the same file is skipped); returns how many were skipped."""
+    return sum(parallel_map(run_resumable, [
         ResumableTask(str(run.root), warp_raster_task, t, t.dst_path, (t.warp.src_path,))
         for t in tasks], desc="align"))
-    return m_grids, n_skipped
 
 
 def run_align(site: SiteConfig, out: RunPath) -> StepResult:
@@ -481,14 +480,18 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
     else:
         anchor = _identity_anchor(center_m)
     aligned_transform = grid.uav_window_transform(awin)
-    m_grids, n_skipped = _warp_aligned(site, run, grid, warps, entries, rwin, awin, params)
+    tasks = _aligned_tasks(site, run, grid, warps, entries, rwin, awin, params)
+    todo = list(tasks.values())
+    n_skipped = 0
     if p.align_model == "local":
         params["align_model"] = "local"
-        # the local field is still applied from flights on the site grid (see
-        # _flights_on_grid); plugging it into ComposedWarp.field would make it one warp
-        gpath = _flights_on_grid(site, run, grid)
-        for fid, rec in _local_fields(site, run, grid, awin, m_grids, gpath, params).items():
+        # the reference first (the field is measured against it), then every other flight
+        # once, from its original file, through global correction + field
+        n_skipped += _run_warps(run, [tasks[ref_id]])
+        records, todo = _local_fields(site, run, grid, awin, tasks, params)
+        for fid, rec in records.items():
             entries[fid]["local_field"] = rec
+    n_skipped += _run_warps(run, todo)
 
     # local check: remaining shift field between each aligned flight and the reference
     local: dict[str, Any] = {}
@@ -536,8 +539,6 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
                    f"{anchor['confidence']:.2f})")
     outputs = [run.alignment_json] + [run.aligned(f.id) for f in site.flights]
     outputs += [run.alignment_field(k) for k, e in entries.items() if "local_field" in e]
-    if p.align_model == "local" and not p.keep_intermediates:
-        outputs += [run.grid_raster(f.id) for f in site.flights]  # written for the field
     if arrows:
         outputs.append(run.alignment_check_geojson)
     record = {"reference": ref_id, "aligned_shape": [int(awin.height), int(awin.width)],
