@@ -19,6 +19,10 @@ Compared in the same run:
   stated (no global similarity), rejected by confidence only, interpolated by an exact
   thin-plate spline (GDAL's ``-tps`` warp), extrapolated wherever the flight has data.
 
+The local run is also compared with one bicubic remap of the original moving file through
+the composed mapping (``vs_single_remap_oracle``, grey levels): the local model resamples
+each flight once, so only rounding is left; and no ``grid/`` copy is written.
+
 Also the sample site (``data/samples``): the local check (residual window shifts, geosim's
 kernel) after the similarity and after the local model.
 
@@ -69,7 +73,8 @@ def arosics_style(case, out: Path) -> dict[str, float]:
     from scipy.interpolate import RBFInterpolator
 
     from geosim.align.field import LOW_CONFIDENCE, measure_window_shifts
-    from geosim.prepare.alignment import read_grey_window
+    from geosim.prepare.onewarp import ComposedWarp, read_grey_on_grid
+    from geosim.prepare.steps import read_grid
     from tests.warp_case import GSD_M
 
     doc = json.loads((out / "alignment.json").read_text())
@@ -79,8 +84,12 @@ def arosics_style(case, out: Path) -> dict[str, float]:
 
     win = Window(aw["col_off"], aw["row_off"], aw["width"], aw["height"])
     t0 = time.perf_counter()
-    ref, rv = read_grey_window(out / "grid" / "REF.tif", win)
-    mov, mv = read_grey_window(out / "grid" / "MOV.tif", win)   # as stated: no similarity
+    # both flights on the site grid as stated (no similarity), read through the one warp
+    grid = read_grid(out)
+    ref, rv = read_grey_on_grid(ComposedWarp.for_flight(case.ref_path, grid.crs,
+                                                        grid.uav_transform), win)
+    mov, mv = read_grey_on_grid(ComposedWarp.for_flight(case.mov_path, grid.crs,
+                                                        grid.uav_transform), win)
     s = measure_window_shifts(ref, mov, valid=rv & mv, window_px=256, step_px=128)
     ok = np.isfinite(s.dx_px) & (s.confidence >= 0.1)
     pts = np.stack([s.y_px[ok], s.x_px[ok]], axis=1)
@@ -109,6 +118,24 @@ def arosics_style(case, out: Path) -> dict[str, float]:
             "n_tie_points": int(ok.sum()), "n_low_confidence": int((s.status == LOW_CONFIDENCE)
                                                                    .sum() + (~ok).sum()),
             "time_s": elapsed}
+
+
+def resampled_once(case, out: Path, n: int = 512) -> dict[str, float]:
+    """Grey difference between the aligned moving flight and ONE bicubic remap of the
+    original file through the composed mapping (``tests.warp_case.single_remap_oracle``),
+    over a central ``n`` px crop: what a second interpolation would add shows here."""
+    import rasterio
+    from rasterio.windows import Window
+
+    from tests.warp_case import single_remap_oracle
+
+    with rasterio.open(out / "aligned" / "MOV.tif") as ds:
+        r0, c0 = ds.height // 2 - n // 2, ds.width // 2 - n // 2 - 300
+        got = ds.read([1, 2, 3], window=Window(c0, r0, n, n)).astype(np.float32).mean(axis=0)
+        ok = ds.read_masks(1, window=Window(c0, r0, n, n)) > 0
+    diff = np.abs(got - single_remap_oracle(case, out, r0, c0, n))[ok]
+    return {"mean_abs_grey": float(diff.mean()), "max_abs_grey": float(diff.max()),
+            "crop_px": n}
 
 
 def sample_site(tmp: Path) -> dict[str, dict]:
@@ -158,6 +185,9 @@ def main(argv: list[str] | None = None) -> int:
             rec = doc["flights"]["MOV"]["local_field"]
             res[model]["windows"] = rec["fit"]["n_windows"]
             res[model]["fallback_node_fraction"] = rec["fallback"]["node_fraction"]
+            res[model]["vs_single_remap_oracle"] = resampled_once(case, folder / "run")
+            res[model]["grid_copies_written"] = sorted(
+                p.name for p in (folder / "run" / "grid").glob("*.tif"))
         if model == "similarity":
             res["arosics_style"] = arosics_style(case, folder / "run")
     res["sample_site"] = sample_site(tmp)

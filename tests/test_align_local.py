@@ -312,37 +312,13 @@ def test_similarity_model_writes_no_field(warp_runs):
     assert math.isfinite(doc["local_check"]["MOV"]["median_shift_px"])
 
 
-def _single_remap_oracle(case, out: Path, r0: int, c0: int, n: int) -> np.ndarray:
-    """Grey of aligned pixels ``[r0:r0+n, c0:c0+n]`` by ONE bicubic remap of the original
-    moving file, composed here point by point: aligned pixel → map → field (exact, per pixel)
-    → inverse global correction → EPSG:4326 (pyproj) → source pixel."""
-    from pyproj import Transformer
-    from rasterio.windows import Window
-
-    from geosim.prepare.alignment import correction_affine
-    from geosim.prepare.local_align import read_field_geotiff
-
-    doc = json.loads((out / "alignment.json").read_text())
-    at = Affine(*doc["aligned_grid"]["transform"])
-    entry = doc["flights"]["MOV"]
-    field = read_field_geotiff(out / entry["local_field"]["path"])
-    cc, rr = np.meshgrid(np.arange(c0, c0 + n) + 0.5, np.arange(r0, r0 + n) + 0.5)
-    sx, sy = ~correction_affine(entry) * field.apply(*(at * (cc, rr)))
-    with rasterio.open(case.mov_path) as ds:
-        fx, fy = Transformer.from_crs(doc["crs"], ds.crs, always_xy=True).transform(sx, sy)
-        col, row = ~ds.transform * (fx, fy)
-        a0, b0 = int(np.floor(col.min())) - 4, int(np.floor(row.min())) - 4
-        win = Window(a0, b0, int(np.ceil(col.max())) + 5 - a0, int(np.ceil(row.max())) + 5 - b0)
-        img = ds.read([1, 2, 3], window=win).astype(np.float32).mean(axis=0)
-    return cv2.remap(img, (col - 0.5 - a0).astype(np.float32), (row - 0.5 - b0).astype(np.float32),
-                     cv2.INTER_CUBIC)
-
-
 def test_local_model_resamples_once_from_the_original(warp_runs):
     """No grid/ copy; aligned/MOV.tif is one bicubic remap of the original flight through
     the composed mapping (a second interpolation, as from grid/<flight>.tif, differed from
     this oracle by 0.78 grey levels on average and up to 10.5)."""
     from rasterio.windows import Window
+
+    from tests.warp_case import single_remap_oracle
 
     case, out, _ = warp_runs["local"]
     assert not (out / "grid" / "MOV.tif").exists() and not (out / "grid" / "REF.tif").exists()
@@ -351,7 +327,7 @@ def test_local_model_resamples_once_from_the_original(warp_runs):
         r0, c0 = ds.height // 2 - n // 2, ds.width // 2 - n // 2 - 300
         got = ds.read([1, 2, 3], window=Window(c0, r0, n, n)).astype(np.float32).mean(axis=0)
         ok = ds.read_masks(1, window=Window(c0, r0, n, n)) > 0
-    oracle = _single_remap_oracle(case, out, r0, c0, n)
+    oracle = single_remap_oracle(case, out, r0, c0, n)
     assert ok.mean() > 0.99
     diff = np.abs(got - oracle)[ok]
     # what is left: 8-bit rounding, OpenCV's 1/32 px positions, the 16 px lattice

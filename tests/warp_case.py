@@ -212,3 +212,30 @@ def evaluate(case: WarpCase, out_dir: Path, *, flight: str = "MOV", step_px: int
     return Residual(float(np.median(err[both])), worst,
                     float(err[only_mov].max()) if only_mov.any() else None,
                     float(np.median(img)), float(np.max(img)), len(img))
+
+
+def single_remap_oracle(case: WarpCase, out: Path, r0: int, c0: int, n: int) -> np.ndarray:
+    """Grey of aligned MOV pixels ``[r0:r0+n, c0:c0+n]`` by ONE bicubic remap of the original
+    moving file, composed here point by point: aligned pixel → map → field (exact, per pixel)
+    → inverse global correction → EPSG:4326 (pyproj) → source pixel."""
+    import json
+
+    from rasterio.windows import Window
+
+    from geosim.prepare.alignment import correction_affine
+    from geosim.prepare.local_align import read_field_geotiff
+
+    doc = json.loads((out / "alignment.json").read_text())
+    at = Affine(*doc["aligned_grid"]["transform"])
+    entry = doc["flights"]["MOV"]
+    field = read_field_geotiff(out / entry["local_field"]["path"])
+    cc, rr = np.meshgrid(np.arange(c0, c0 + n) + 0.5, np.arange(r0, r0 + n) + 0.5)
+    sx, sy = ~correction_affine(entry) * field.apply(*(at * (cc, rr)))
+    with rasterio.open(case.mov_path) as ds:
+        fx, fy = Transformer.from_crs(doc["crs"], ds.crs, always_xy=True).transform(sx, sy)
+        col, row = ~ds.transform * (fx, fy)
+        a0, b0 = int(np.floor(col.min())) - 4, int(np.floor(row.min())) - 4
+        win = Window(a0, b0, int(np.ceil(col.max())) + 5 - a0, int(np.ceil(row.max())) + 5 - b0)
+        img = ds.read([1, 2, 3], window=win).astype(np.float32).mean(axis=0)
+    return cv2.remap(img, (col - 0.5 - a0).astype(np.float32), (row - 0.5 - b0).astype(np.float32),
+                     cv2.INTER_CUBIC)
