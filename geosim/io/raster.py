@@ -323,3 +323,16 @@ def read_failure(exc: BaseException) -> RasterError | None:
     return RasterError(f"a raster cannot be read: {detail}; it is truncated or corrupt: if "
                        "it is in the run folder, delete it and rerun the step that wrote it, "
                        "otherwise re-copy the input")
+
+
+def band_descriptions(src: rasterio.DatasetReader, bands: list[int]) -> list[str]:
+    """Band descriptions (or colour interpretation names) of the given bands."""
+    from rasterio.enums import ColorInterp
+
+    out = []
+    for b in bands:
+        desc = src.descriptions[b - 1]
+        ci = src.colorinterp[b - 1]
+        out.append(desc or (ci.name if ci not in (ColorInterp.undefined, ColorInterp.gray)
+                            else f"band {b}"))
+    return out

@@ -43,7 +43,13 @@ from rasterio.crs import CRS
 from rasterio.windows import Window
 
 from geosim.errors import RasterError
-from geosim.io.raster import create_geotiff, image_band_indexes, iter_windows, read_valid_mask
+from geosim.io.raster import (
+    band_descriptions,
+    create_geotiff,
+    image_band_indexes,
+    iter_windows,
+    read_valid_mask,
+)
 
 #: Lattice spacing (destination pixels) on which the composed mapping is evaluated exactly.
 LATTICE_PX = 16
@@ -294,19 +300,6 @@ def read_warped(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int
         a *= 1.0 / SUBPIXEL
         maps.append(a.astype(np.float32))
     return remap_window(image, valid, *maps)
-
-
-def band_descriptions(src: rasterio.DatasetReader, bands: list[int]) -> list[str]:
-    """Band descriptions (or colour interpretation names) of the given bands."""
-    from rasterio.enums import ColorInterp
-
-    out = []
-    for b in bands:
-        desc = src.descriptions[b - 1]
-        ci = src.colorinterp[b - 1]
-        out.append(desc or (ci.name if ci not in (ColorInterp.undefined, ColorInterp.gray)
-                            else f"band {b}"))
-    return out
 
 
 @dataclass(frozen=True)

@@ -25,14 +25,19 @@ import numpy as np
 import rasterio
 from affine import Affine
 from rasterio.crs import CRS
-from rasterio.enums import ColorInterp, Resampling
+from rasterio.enums import Resampling
 from rasterio.warp import reproject, transform_bounds
 from rasterio.windows import Window
 from rasterio.windows import bounds as window_bounds
 from tqdm import tqdm
 
 from geosim.errors import RasterError
-from geosim.io.raster import create_geotiff, image_band_indexes, read_valid_mask
+from geosim.io.raster import (
+    band_descriptions,
+    create_geotiff,
+    image_band_indexes,
+    read_valid_mask,
+)
 
 SUPPORTED_DTYPES = ("uint8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 _RESAMPLING = {"bicubic": Resampling.cubic, "cubic": Resampling.cubic,
@@ -145,16 +150,6 @@ def reproject_window(image: np.ndarray, valid: np.ndarray, *, src_transform: Aff
     return dst.astype(dtype), ok
 
 
-def _band_descriptions(src: rasterio.DatasetReader, bands: list[int]) -> list[str]:
-    out = []
-    for b in bands:
-        desc = src.descriptions[b - 1]
-        ci = src.colorinterp[b - 1]
-        out.append(desc or (ci.name if ci not in (ColorInterp.undefined, ColorInterp.gray)
-                            else f"band {b}"))
-    return out
-
-
 def reproject_to_grid(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str], *,
                       crs: CRS, transform: Affine, shape: tuple[int, int],
                       resampling: str = "bicubic", block_px: int = 2048,
@@ -201,7 +196,7 @@ def reproject_to_grid(src_path: str | os.PathLike[str], dst_path: str | os.PathL
             raise RasterError(f"{what}: {src_path} has data type(s) "
                               f"{sorted({src.dtypes[b - 1] for b in bands})}; use one of "
                               f"{SUPPORTED_DTYPES} for all bands")
-        descriptions = _band_descriptions(src, bands)
+        descriptions = band_descriptions(src, bands)
         colorinterp = [src.colorinterp[b - 1] for b in bands]
         valid_px = 0
         windows = list(_iter_windows(cols, rows, block_px))
