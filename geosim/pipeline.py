@@ -105,22 +105,26 @@ class Terminated(KeyboardInterrupt):
 
 def input_checksums(site: SiteConfig) -> dict[str, dict[str, str]]:
     """SHA-256 of every input file (for a folder of labels: of each file in it)."""
-    files: dict[str, Path] = {}
-    if site.path is not None:
-        files["site"] = site.path
+    paths: dict[str, Path | None] = {"site": site.path}
     for f in site.flights:
-        files[f"flights.{f.id}.image"] = f.image
-        if f.labels is not None:
-            if f.labels.is_dir():
-                for p in sorted(f.labels.iterdir()):
-                    if p.is_file():
-                        files[f"flights.{f.id}.labels.{p.name}"] = p
-            else:
-                files[f"flights.{f.id}.labels"] = f.labels
-    if site.satellite is not None:
-        files["satellite.image"] = site.satellite.image
-    if site.paddocks is not None:
-        files["paddocks"] = site.paddocks
+        paths[f"flights.{f.id}.image"] = f.image
+        paths[f"flights.{f.id}.labels"] = f.labels
+    paths["satellite.image"] = site.satellite.image if site.satellite is not None else None
+    paths["paddocks"] = site.paddocks
+    return file_checksums(paths)
+
+
+def file_checksums(paths: Mapping[str, Path | None]) -> dict[str, dict[str, str]]:
+    """``{key: {"path", "sha256"}}`` of each given input file; a folder gives one entry per
+    file directly in it (``key.<name>``); ``None`` and missing paths are left out."""
+    files: dict[str, Path] = {}
+    for key, p in paths.items():
+        if p is None:
+            continue
+        if p.is_dir():
+            files.update({f"{key}.{f.name}": f for f in sorted(p.iterdir()) if f.is_file()})
+        elif p.is_file():
+            files[key] = p
     return {k: {"path": str(p), "sha256": sha256_file(p)} for k, p in files.items()}
 
 

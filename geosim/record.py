@@ -30,8 +30,13 @@ import rasterio
 
 from geosim import __version__, engine
 from geosim.io.atomic import recording_outputs, to_jsonable, write_json
-from geosim.io.raster import sha256_file
-from geosim.pipeline import GDAL_CACHE_MB, _now, _read_record, _sigterm_raises
+from geosim.pipeline import (
+    GDAL_CACHE_MB,
+    _now,
+    _read_record,
+    _sigterm_raises,
+    file_checksums,
+)
 
 
 @dataclass
@@ -46,19 +51,6 @@ def record_path(out: Path, *, folder: bool) -> Path:
     """Where a command writing to ``out`` records itself: ``out/run.json`` for a folder,
     ``out.run.json`` beside a single output file."""
     return out / "run.json" if folder else out.with_name(out.name + ".run.json")
-
-
-def input_files(paths: Mapping[str, Path | None]) -> dict[str, dict[str, str]]:
-    """SHA-256 of each given input file (for a folder: of each file directly in it)."""
-    files: dict[str, Path] = {}
-    for key, p in paths.items():
-        if p is None:
-            continue
-        if p.is_dir():
-            files.update({f"{key}.{f.name}": f for f in sorted(p.iterdir()) if f.is_file()})
-        elif p.is_file():
-            files[key] = p
-    return {k: {"path": str(p), "sha256": sha256_file(p)} for k, p in files.items()}
 
 
 @contextlib.contextmanager
@@ -91,12 +83,12 @@ def command_record(command: str, run_json: Path, *, inputs: Mapping[str, Path | 
     record: dict[str, Any] = host if host is not None else {
         "geosim_version": __version__, "started": _now(), "python": platform.python_version(),
         "status": "running", "command": command, "options": opts,
-        "inputs": input_files(inputs), "steps": {}, "gdal_cache_mb": GDAL_CACHE_MB,
+        "inputs": file_checksums(inputs), "steps": {}, "gdal_cache_mb": GDAL_CACHE_MB,
         "engine": engine.active().describe()}
     steps = record.setdefault("steps", {})
     steps[command] = {"status": "running", "options": opts, "outputs": []}
     if host is not None:
-        steps[command]["inputs"] = input_files(inputs)
+        steps[command]["inputs"] = file_checksums(inputs)
     write_json(run_json, record)
     run = CommandRun()
     start = time.perf_counter()
