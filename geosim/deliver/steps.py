@@ -19,7 +19,7 @@ from geosim.deliver.stac import COG_TYPE, RasterItem, write_stac
 from geosim.deliver.vrt import write_mosaic_vrt
 from geosim.deliver.yolo_dataset import write_yolo_dataset
 from geosim.result import StepResult
-from geosim.rundir import RunDir, RunPath
+from geosim.rundir import YOLO_SUBDIRS, RunDir, RunPath
 
 log = logging.getLogger(__name__)
 
@@ -28,43 +28,43 @@ VAL_FRACTION = 0.2
 SPLIT_SEED = 0
 
 
-def flight_tiles(out: Path, kind: str, flight: str) -> list[Path]:
-    """``DIR/<kind>/<flight>/r*_c*.tif``, sorted."""
-    return sorted((out / kind / flight).glob("r*_c*.tif"))
+def _flight_tiles(run: RunDir, resolution: str, flight: str) -> list[Path]:
+    """The flight's tiles at ``resolution`` (``"uav"``: tiles/, ``"0.5m"``: degraded/)."""
+    return run.tile_files(flight) if resolution == "uav" else run.degraded_files(flight)
 
 
-def write_mosaics(site: SiteConfig, out: Path) -> dict[str, list[str]]:
+def write_mosaics(site: SiteConfig, run: RunDir) -> dict[str, list[str]]:
     """One VRT per flight for tiles/ and degraded/ (where that step ran)."""
     written: dict[str, list[str]] = {}
-    for kind in ("tiles", "degraded"):
+    for resolution, folder in (("uav", run.tiles_dir), ("0.5m", run.degraded_dir)):
         for f in site.flights:
-            paths = flight_tiles(out, kind, f.id)
+            paths = _flight_tiles(run, resolution, f.id)
             if paths:
-                vrt = write_mosaic_vrt(paths, out / kind / f"{f.id}.vrt")
-                written.setdefault(kind, []).append(vrt.relative_to(out).as_posix())
+                vrt = write_mosaic_vrt(paths, folder / f"{f.id}.vrt")
+                written.setdefault(folder.name, []).append(run.rel(vrt))
     return written
 
 
-def stac_items(site: SiteConfig, out: Path) -> list[RasterItem]:
+def stac_items(site: SiteConfig, run: RunDir) -> list[RasterItem]:
     """An item per flight tile (with its degraded tile and labels) and for the satellite."""
     items = []
-    cattle = out / "labels" / "cattle.geojson"
+    cattle = run.labels_dir / "cattle.geojson"
     for f in site.flights:
-        for tif in flight_tiles(out, "tiles", f.id):
+        for tif in run.tile_files(f.id):
             assets: dict[str, tuple[Path, str, str]] = {"image": (tif, COG_TYPE, "data")}
-            deg = out / "degraded" / f.id / tif.name
+            deg = run.degraded(f.id, tif.stem)
             if deg.is_file():
                 assets["degraded"] = (deg, COG_TYPE, "data")
-            for res in ("yolo", "yolo_0.5m"):
-                txt = out / "labels" / res / f.id / f"{tif.stem}.txt"
+            for resolution in YOLO_SUBDIRS:
+                txt = run.yolo_file(resolution, f.id, tif.stem)
                 if txt.is_file():
-                    assets[f"labels_{res}"] = (txt, "text/plain", "labels")
+                    assets[f"labels_{YOLO_SUBDIRS[resolution]}"] = (txt, "text/plain", "labels")
             if cattle.is_file():
                 assets["labels_geojson"] = (cattle, "application/geo+json", "labels")
             items.append(RasterItem(f"{f.id}_{tif.stem}", tif, f.acquired, assets,
                                     {"geosim:flight": f.id, "geosim:tile_id": tif.stem,
                                      "gsd": site.parameters.uav_gsd_m}))
-    sat_tif = out / "grid" / "satellite.tif"
+    sat_tif = run.satellite_grid
     if site.satellite is not None and site.satellite.acquired is not None and sat_tif.is_file():
         items.append(RasterItem("satellite", sat_tif, site.satellite.acquired,
                                 {"image": (sat_tif, COG_TYPE, "data")},
@@ -75,21 +75,20 @@ def stac_items(site: SiteConfig, out: Path) -> list[RasterItem]:
     return items
 
 
-def write_yolo_datasets(site: SiteConfig, out: Path, *, val_fraction: float, seed: int
+def write_yolo_datasets(site: SiteConfig, run: RunDir, *, val_fraction: float, seed: int
                         ) -> dict[str, dict[str, int]]:
     """``DIR/yolo`` from the UAV tiles and ``DIR/yolo_0.5m`` from the degraded tiles."""
-    classes = out / "labels" / "classes.txt"
-    if not classes.is_file():
+    if not run.classes_txt.is_file():
         return {}
-    names = [n.strip() for n in classes.read_text().splitlines() if n.strip()]
+    names = [n.strip() for n in run.classes_txt.read_text().splitlines() if n.strip()]
     done = {}
-    for name, kind, labels in (("yolo", "tiles", "yolo"), ("yolo_0.5m", "degraded",
-                                                           "yolo_0.5m")):
-        items = [(f.id, tif.stem, tif, out / "labels" / labels / f.id / f"{tif.stem}.txt")
-                 for f in site.flights for tif in flight_tiles(out, kind, f.id)]
+    for resolution, name in YOLO_SUBDIRS.items():
+        items = [(f.id, tif.stem, tif, run.yolo_file(resolution, f.id, tif.stem))
+                 for f in site.flights for tif in _flight_tiles(run, resolution, f.id)]
         if items:
+            kind = "tiles" if resolution == "uav" else "degraded"
             ds = write_yolo_dataset(
-                out / name, items, names, val_fraction=val_fraction, seed=seed,
+                run.root / name, items, names, val_fraction=val_fraction, seed=seed,
                 note=f"geosim {kind} of site {site.name}: split by tile "
                      f"(val_fraction={val_fraction}, seed={seed})")
             done[name] = ds.images
@@ -114,11 +113,11 @@ def run_deliver(site: SiteConfig, out_dir: RunPath, *, val_fraction: float = VAL
     run = RunDir.of(out_dir)
     run.require_tiles_index()
     out = run.root
-    mosaics = write_mosaics(site, out)
+    mosaics = write_mosaics(site, run)
     log.info("mosaics: %s", ", ".join(sum(mosaics.values(), [])))
-    items = stac_items(site, out)
+    items = stac_items(site, run)
     catalog = write_stac(out, site.name, items, description=f"geosim run of {site.name}")
-    yolo = write_yolo_datasets(site, out, val_fraction=val_fraction, seed=seed)
+    yolo = write_yolo_datasets(site, run, val_fraction=val_fraction, seed=seed)
     qgs = write_qgis_project(site, out)
     n_vrt = sum(len(v) for v in mosaics.values())
     yolo_text = ", ".join(f"{k} {v['train']}/{v['val']} train/val" for k, v in yolo.items())
