@@ -27,6 +27,7 @@ from pyproj import CRS as ProjCRS
 
 from geosim.config import SiteConfig
 from geosim.io.atomic import write_text
+from geosim.rundir import RunDir
 
 log = logging.getLogger(__name__)
 
@@ -249,7 +250,7 @@ def write_paddock_counts(site: SiteConfig, out: Path) -> Path | None:
     from geosim.labels.paddocks import OUTSIDE, cattle_per_paddock
     from geosim.labels.sources import read_paddocks
 
-    cattle_path = out / "labels" / "cattle.gpkg"
+    cattle_path = RunDir.of(out).labels_dir / "cattle.gpkg"
     if site.paddocks is None or not cattle_path.is_file():
         return None
     import geopandas as gpd
@@ -313,11 +314,12 @@ def write_qgis_project(site: SiteConfig, out_dir: str | Path) -> Path:
     """Write ``DIR/geosim.qgs`` for the run folder (layers that exist); returns its path."""
     import json
 
-    out = Path(out_dir)
+    run = RunDir.of(out_dir)
+    out = run.root
     groups = [(name, layers) for name, layers in build_groups(site, out) if layers]
-    grid = json.loads((out / "grid" / "grid.json").read_text())
+    grid = json.loads(run.grid_json.read_text())
     crs_wkt = ProjCRS.from_user_input(grid["crs"]).to_wkt()
-    with rasterio.open(out / "tiles" / f"{site.flights[0].id}.vrt") as ds:
+    with rasterio.open(run.tiles_dir / f"{site.flights[0].id}.vrt") as ds:
         extent = tuple(ds.bounds)
     log.info("QGIS project: %d layer(s) in %d group(s)",
              sum(len(g[1]) for g in groups), len(groups))

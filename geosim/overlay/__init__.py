@@ -9,6 +9,7 @@ from pathlib import Path
 
 from geosim.errors import InputFileError
 from geosim.overlay.check import OverlayResult, overlay_check
+from geosim.rundir import RunDir
 
 __all__ = ["OverlayResult", "overlay_check", "run_pairs"]
 
@@ -17,14 +18,14 @@ def run_pairs(out_dir: str | os.PathLike[str], flights: Sequence[str]
               ) -> list[tuple[str, Path, Path]]:
     """``(name, a, b)`` for a run folder: each flight's degraded mosaic (a) vs the satellite
     on the shared grid (b), so shifts say where the satellite sees the simulated ground."""
-    out = Path(out_dir)
-    sat = out / "grid" / "satellite.tif"
+    run = RunDir.of(out_dir)
+    sat = run.satellite_grid
     if not sat.is_file():
         raise InputFileError(f"{sat} not found; the overlay check of a run needs the "
                              "satellite scene on the grid ('geosim run' with a satellite)")
     pairs = []
     for fid in flights:
-        vrt = out / "degraded" / f"{fid}.vrt"
+        vrt = run.degraded_dir / f"{fid}.vrt"
         if not vrt.is_file():
             raise InputFileError(f"{vrt} not found; run 'geosim degrade' and "
                                  "'geosim deliver' (or 'geosim run') first")
