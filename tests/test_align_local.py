@@ -154,8 +154,10 @@ def test_too_few_windows_is_global_everywhere():
 # --------------------------------------------------------------------------- phase correlation
 
 
-def test_phase_correlate_agrees_with_skimage(realdata):
-    """Cross-check of geosim's phase correlation with scikit-image's (issue 11)."""
+@pytest.mark.parametrize("whitening", [0.5, 1.0])
+def test_phase_correlate_agrees_with_skimage(realdata, whitening):
+    """Cross-check of geosim's phase correlation with scikit-image's (issue 11), in the
+    default (partial whitening) and in diagnose's mode (classical, ``whitening=1``)."""
     from skimage.registration import phase_cross_correlation
 
     from geosim.align import phase_correlate
@@ -165,16 +167,30 @@ def test_phase_correlate_agrees_with_skimage(realdata):
     spec = np.fft.fft2(grey)
     fy = np.fft.fftfreq(512)[:, None]
     fx = np.fft.fftfreq(512)[None, :]
-    for dx, dy in ((3.37, -1.81), (-0.42, 0.77), (6.05, 2.5)):
+    for dx, dy in ((3.37, -1.81), (-0.42, 0.77), (6.05, 2.5), (5.0, -7.0), (-2.0, 0.0)):
         moved = np.fft.ifft2(spec * np.exp(-2j * np.pi * (fx * dx + fy * dy))).real
         crop_r, crop_m = grey[32:-32, 32:-32].copy(), moved[32:-32, 32:-32].copy()
         before = crop_m.copy()
-        ours = phase_correlate(crop_r, crop_m).shift_px
+        ours = phase_correlate(crop_r, crop_m, whitening=whitening).shift_px
         sk, _, _ = phase_cross_correlation(crop_r, crop_m, upsample_factor=100)
         assert np.array_equal(crop_m, before)          # inputs untouched
         # skimage returns the shift that registers moving onto reference: (-dy, -dx)
         assert abs(ours[0] + sk[1]) < 0.05 and abs(ours[1] + sk[0]) < 0.05
         assert abs(ours[0] - dx) < 0.05 and abs(ours[1] - dy) < 0.05
+        # whole-pixel mode (diagnose's integer_shift: upsample 1, search within ±8 px)
+        whole = phase_correlate(crop_r, crop_m, whitening=whitening, upsample_factor=1,
+                                max_shift_px=8).shift_px
+        sk1, _, _ = phase_cross_correlation(crop_r, crop_m, upsample_factor=1)
+        assert whole == (-float(sk1[1]), -float(sk1[0]))
+        assert abs(whole[0] - dx) <= 0.5 + 1e-9 and abs(whole[1] - dy) <= 0.5 + 1e-9
+
+
+def test_phase_correlate_whitening_is_checked():
+    from geosim.align import phase_correlate
+
+    grey = textured_rgb(64, 64, seed=1).astype(np.float32).mean(axis=0)
+    with pytest.raises(ValueError, match="whitening"):
+        phase_correlate(grey, grey, whitening=1.5)
 
 
 # --------------------------------------------------------------------------- seasonal pair

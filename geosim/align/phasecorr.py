@@ -25,7 +25,7 @@ valid ones, the valid area is feathered (raised-cosine taper over
 ``feather_px``) so that mask edges do not correlate, the result is apodised with
 a Hann (or Tukey) window and its weighted mean removed. The cross-power
 spectrum ``X = F_mov · conj(F_ref)`` is partially whitened (``X / |X|**0.5``,
-see :data:`WHITENING_EXPONENT`; 1 would be classical phase correlation),
+see :data:`WHITENING_EXPONENT`; ``whitening=1`` gives classical phase correlation),
 multiplied by a radial raised-cosine taper that reaches 0 at Nyquist
 (:func:`spectral_taper`, which keeps noise, aliasing and interpolation phase
 errors at the highest frequencies from biasing the sub-pixel position) and
@@ -295,20 +295,24 @@ def spectral_taper(shape: tuple[int, int]) -> np.ndarray:
     return (np.cos(np.float32(np.pi) * f) ** 2).astype(np.float32)
 
 
-def cross_power(prep_ref: np.ndarray, prep_mov: np.ndarray) -> np.ndarray:
-    """Partially whitened, tapered cross-power spectrum (complex64, FFT layout).
+def cross_power(prep_ref: np.ndarray, prep_mov: np.ndarray, *,
+                whitening: float = WHITENING_EXPONENT) -> np.ndarray:
+    """Whitened, tapered cross-power spectrum (complex64, FFT layout).
 
-    ``X = F_mov · conj(F_ref)``, divided by ``|X| ** WHITENING_EXPONENT``, times
+    ``X = F_mov · conj(F_ref)``, divided by ``|X| ** whitening`` (default
+    :data:`WHITENING_EXPONENT`; 1 is classical phase correlation), times
     :func:`spectral_taper`, then scaled so that its mean modulus is 1 (a perfect
     circular match then gives a surface peak of exactly 1). Its inverse FFT peaks
     at the position of the moving content relative to the reference.
     """
+    if not 0.0 <= whitening <= 1.0:
+        raise ValueError(f"whitening must be in [0, 1], got {whitening}")
     fr = sfft.fft2(prep_ref)
     fm = sfft.fft2(prep_mov)
     r = fm * np.conj(fr)
     mag = np.abs(r)
     floor = np.float32(1e-12) * (float(mag.max()) if mag.size else 1.0)
-    r = r / np.maximum(mag, floor) ** np.float32(WHITENING_EXPONENT)
+    r = r / np.maximum(mag, floor) ** np.float32(whitening)
     r *= spectral_taper(r.shape)
     norm = float(np.abs(r).mean(dtype=np.float64))
     if norm > 0:
@@ -496,14 +500,15 @@ def top_peaks(surface: np.ndarray, k: int, *, allowed: np.ndarray | None = None,
 
 def correlate_prepared(prep_ref: np.ndarray, prep_mov: np.ndarray, weight_ref: np.ndarray,
                        weight_mov: np.ndarray, *, upsample_factor: int,
-                       allowed: np.ndarray | None = None, exclusion_px: float = 6.0
-                       ) -> PhaseCorrelation:
+                       allowed: np.ndarray | None = None, exclusion_px: float = 6.0,
+                       whitening: float = WHITENING_EXPONENT) -> PhaseCorrelation:
     """Phase-correlate two images prepared by :func:`prepare` (with their weights).
 
     ``allowed`` optionally restricts the peak search to a boolean mask of the
-    surface (FFT layout: index ``(i, j)`` is shift ``(dx, dy) = (j, i)`` modulo the shape).
+    surface (FFT layout: index ``(i, j)`` is shift ``(dx, dy) = (j, i)`` modulo the shape);
+    ``whitening`` is the exponent of :func:`cross_power`.
     """
-    r = cross_power(prep_ref, prep_mov)
+    r = cross_power(prep_ref, prep_mov, whitening=whitening)
     surface = sfft.ifft2(r).real
     env = noise_envelope(weight_ref, weight_mov)
     usable = env >= ENVELOPE_MIN
@@ -531,7 +536,8 @@ def phase_correlate(reference: np.ndarray, moving: np.ndarray, *,
                     window: str | None = "hann",
                     upsample_factor: int = 100,
                     feather_px: float | None = None,
-                    max_shift_px: float | None = None) -> PhaseCorrelation:
+                    max_shift_px: float | None = None,
+                    whitening: float = WHITENING_EXPONENT) -> PhaseCorrelation:
     """Sub-pixel translation between two images by windowed phase correlation.
 
     Parameters
@@ -553,7 +559,19 @@ def phase_correlate(reference: np.ndarray, moving: np.ndarray, *,
         at least 4).
     max_shift_px : float, optional
         Search the peak only among shifts with ``|dx|, |dy| <= max_shift_px`` (default:
-        everywhere the windows overlap enough).
+        everywhere the windows overlap enough). The search is clipped, not
+        re-centred: when the true shift lies outside, the maximum found is on the
+        border of the square and is not a peak.
+    whitening : float
+        Exponent ``p`` in ``[0, 1]`` of the spectral whitening ``X / |X|**p`` (default
+        :data:`WHITENING_EXPONENT` = 0.5). ``1`` is classical phase correlation: every
+        frequency counts the same, so broad low-frequency differences between the
+        images (illumination gradients, exposure seams, haze, changed fields) cannot
+        raise a smooth ramp on the surface. Use 1 when the two images are different
+        renderings of the scene (simulation against a real satellite scene:
+        :func:`geosim.diagnose.coregister.integer_shift`); with 0.5 such a ramp
+        outweighed the true peak on the sample site and a search clipped to ±8 px
+        returned its border (−7, −8) px instead of the true (1.6, 2.5) px.
 
     Returns
     -------
@@ -598,4 +616,4 @@ def phase_correlate(reference: np.ndarray, moving: np.ndarray, *,
         dx = np.abs(sfft.fftfreq(cols, 1.0 / cols))[None, :]
         allowed = (dy <= max_shift_px) & (dx <= max_shift_px)
     return correlate_prepared(pr, pm, wr, wm, upsample_factor=int(upsample_factor),
-                              allowed=allowed)
+                              allowed=allowed, whitening=float(whitening))

@@ -20,7 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from geosim.align.phasecorr import phase_correlate
 from geosim.diagnose.spectra import cross_spectrum
+from geosim.errors import AlignmentError
 from geosim.physics.geometry import fourier_shift
 
 __all__ = ["ShiftEstimate", "estimate_shift", "fourier_shift", "integer_shift"]
@@ -52,21 +54,28 @@ class ShiftEstimate:
         return (self.shift_px[0] * gsd_m, -self.shift_px[1] * gsd_m)
 
 
-def integer_shift(sim: np.ndarray, real: np.ndarray, *, max_shift_px: int = 8) -> tuple[int, int]:
-    """Whole-pixel (d_col, d_row) from the peak of the phase-correlation surface."""
-    s = sim - sim.mean()
-    r = real - real.mean()
-    w = np.outer(np.hanning(s.shape[0]), np.hanning(s.shape[1]))
-    fs = np.fft.fft2(s * w)
-    fr = np.fft.fft2(r * w)
-    cross = fr * np.conj(fs)
-    corr = np.real(np.fft.ifft2(cross / np.maximum(np.abs(cross), 1e-12)))
-    rows, cols = corr.shape
-    dr = np.fft.fftfreq(rows, 1.0 / rows).astype(int)[:, None]
-    dc = np.fft.fftfreq(cols, 1.0 / cols).astype(int)[None, :]
-    corr = np.where((np.abs(dr) <= max_shift_px) & (np.abs(dc) <= max_shift_px), corr, -np.inf)
-    i, j = np.unravel_index(np.argmax(corr), corr.shape)
-    return int(dc[0, j]), int(dr[i, 0])
+def integer_shift(sim: np.ndarray, real: np.ndarray, *, valid: np.ndarray | None = None,
+                  max_shift_px: int = 8) -> tuple[int, int]:
+    """Whole-pixel (d_col, d_row) at the peak of the phase-correlation surface.
+
+    The registration kernel :func:`geosim.align.phase_correlate` with the reference
+    ``sim`` and the moving ``real`` (its shift is this module's ``d``), Hann window,
+    classical phase correlation (``whitening=1``), integer peak within ``max_shift_px``.
+    Full whitening matters here: the simulation and the real scene differ at low
+    frequencies (haze, exposure seams, changed fields), and the kernel's default partial
+    whitening lets that difference raise a smooth ramp on the surface that outweighs
+    the true peak (see the ``whitening`` parameter of the kernel).
+
+    Returns (0, 0) when the images cannot be correlated (smaller than 32 px, flat or
+    almost wholly invalid); :func:`estimate_shift`'s phase fit then measures the shift.
+    """
+    try:
+        pc = phase_correlate(sim, real, valid_reference=valid, valid_moving=valid,
+                             window="hann", whitening=1.0, upsample_factor=1,
+                             max_shift_px=max_shift_px)
+    except AlignmentError:
+        return 0, 0
+    return int(round(pc.shift_px[0])), int(round(pc.shift_px[1]))
 
 
 def _phase_fit(sim: np.ndarray, real: np.ndarray, valid: np.ndarray | None, block_px: int,
@@ -125,7 +134,7 @@ def estimate_shift(sim: np.ndarray, real: np.ndarray, *, valid: np.ndarray | Non
     fill = valid if valid is not None else np.ones(s.shape, bool)
     s0 = np.where(fill, s, s[fill].mean())
     r0 = np.where(fill, r, r[fill].mean())
-    dc, dr = integer_shift(s0, r0, max_shift_px=max_shift_px)
+    dc, dr = integer_shift(s0, r0, valid=valid, max_shift_px=max_shift_px)
     moved = fourier_shift(s0, (dc, dr)) if (dc or dr) else s0
     sol, sig, dbic, n = _phase_fit(moved, r0, valid, block_px, f_max)
     # one refinement pass: remove the estimate and fit the remainder
