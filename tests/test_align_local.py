@@ -427,8 +427,7 @@ def test_one_regridder_file_and_array_agree(tmp_path):
     """diagnose's in-memory regridding is prepare's (``reproject_to_array``)."""
     from rasterio.crs import CRS
 
-    from geosim.diagnose.steps import _to_grid
-    from geosim.prepare.reproject import reproject_to_grid
+    from geosim.prepare.reproject import reproject_to_array, reproject_to_grid
     from tests.helpers import write_raster
 
     src = write_raster(tmp_path / "src.tif", textured_rgb(300, 300, seed=4),
@@ -439,7 +438,10 @@ def test_one_regridder_file_and_array_agree(tmp_path):
     with rasterio.open(tmp_path / "g.tif") as ds:
         file_img = ds.read().astype(np.float32)
         file_ok = ds.read_masks(1) > 0
-    arr, ok = _to_grid(src, crs, t, (256, 256), "src")
+    data = reproject_to_array(src, crs=crs, transform=t, shape=(256, 256), max_bands=3,
+                              what="src")
+    arr, ok = data.array, data.valid
+    assert data.transform == t and data.crs == crs and data.array.dtype == np.float32
     assert ok.any() and (~ok).any()
     assert np.array_equal(ok, file_ok)
     assert np.abs(arr[:, ok] - file_img[:, ok]).max() <= 0.5   # the file is rounded to uint8

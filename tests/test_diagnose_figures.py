@@ -118,14 +118,14 @@ def test_dpi_scales_png_pixels_and_title_is_in_the_file(tmp_path):
 def test_diagnose_grids_figures_name_flight_and_follow_dpi(tmp_path):
     """Through the real writer: every PNG of a flight names it, at the dpi asked."""
     from geosim.diagnose.simulate import QSimulator
-    from geosim.diagnose.steps import diagnose_grids
+    from geosim.diagnose.steps import FlightPixels, diagnose_grids
     from tests.test_diagnose_effects import textured_uav
 
     uav = textured_uav(192, seed=3)
     real = np.round(QSimulator(uav, phi=2, q_min=0.7)(1.4))
-    doc = diagnose_grids(uav, np.ones(uav.shape[-2:], bool), real,
-                         np.ones(real.shape[-2:], bool), TRANSFORM, CRS_UTM, tmp_path, phi=2,
-                         q_base=1.4, extra={"flight": "A1"}, dpi=40)
+    pixels = FlightPixels.of_arrays(uav, real, sat_transform=TRANSFORM, crs=CRS_UTM, phi=2,
+                                    q_base=1.4)
+    doc = diagnose_grids(pixels, tmp_path, phi=2, extra={"flight": "A1"}, dpi=40)
     assert len(doc["plots"]) == 3
     for name in doc["plots"]:
         with Image.open(tmp_path / name) as im:

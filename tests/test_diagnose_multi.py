@@ -13,7 +13,7 @@ from rasterio.crs import CRS
 from geosim.diagnose.combine import combine_flights, combine_values
 from geosim.diagnose.effects import get_effect
 from geosim.diagnose.simulate import QSimulator
-from geosim.diagnose.steps import diagnose_flights
+from geosim.diagnose.steps import FlightPixels, diagnose_flights
 from tests.test_diagnose_effects import textured_uav
 
 PHI = 2
@@ -82,9 +82,8 @@ def ground():
 
 def _loader(uav, real, q_base=None):
     def load():
-        return {"uav": uav, "uav_valid": np.ones(uav.shape[-2:], bool), "sat": real,
-                "sat_valid": np.ones(real.shape[-2:], bool), "sat_transform": SAT_T,
-                "crs": CRS_, "q_base": q_base, "sources": []}
+        return FlightPixels.of_arrays(uav, real, sat_transform=SAT_T, crs=CRS_, phi=PHI,
+                                      q_base=q_base)
     return load
 
 

@@ -13,7 +13,7 @@ from rasterio.crs import CRS
 
 from geosim.diagnose.engine import diagnose_arrays
 from geosim.diagnose.simulate import QSimulator
-from geosim.diagnose.steps import diagnose_grids
+from geosim.diagnose.steps import FlightPixels, diagnose_grids
 from tests.test_diagnose_effects import textured_uav
 
 PHI = 2
@@ -47,8 +47,9 @@ def test_scene_change_and_outputs(uav, tmp_path):
     crs = CRS.from_epsg(32756)
     uav_valid = np.ones(uav.shape[-2:], bool)
     sat_valid = np.ones(real.shape[-2:], bool)
-    doc = diagnose_grids(uav, uav_valid, real, sat_valid, transform, crs, tmp_path, phi=PHI,
-                         q_base=1.4)
+    pixels = FlightPixels.of_arrays(uav, real, sat_transform=transform, crs=crs, phi=PHI,
+                                    uav_valid=uav_valid, sat_valid=sat_valid, q_base=1.4)
+    doc = diagnose_grids(pixels, tmp_path, phi=PHI)
     names = [e["name"] for e in doc["effects"]]
     assert "scene_change" in names
     assert not set(names) & {"motion_smear", "atmospheric_blur", "detector_integration",

@@ -12,7 +12,7 @@ from rasterio.crs import CRS
 from geosim.diagnose.engine import Diagnosis
 from geosim.diagnose.fit import HANN_CORRELATION
 from geosim.diagnose.spectra import directional_profiles, polar_bin_mean, radial_profile
-from geosim.io.atomic import atomic_path, write_json, write_text
+from geosim.io.atomic import atomic_path, to_jsonable, write_json, write_text
 from geosim.io.raster import provenance_tags, write_geotiff
 
 __all__ = ["write_diagnosis", "write_combined", "FILES", "compare_with_truth",
@@ -393,26 +393,9 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path, *, transform: Affine, 
     }
     if extra:
         doc.update(extra)
-    write_json(out / "diagnosis.json", _jsonable(doc))
+    write_json(out / "diagnosis.json", to_jsonable(doc, nan_to_null=True))
     write_text(out / "report.md", _markdown(summary))
     return doc
-
-
-def _jsonable(o: Any) -> Any:
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    if isinstance(o, (np.floating, float)):
-        v = float(o)
-        return v if np.isfinite(v) else None
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    return o
 
 
 def compare_with_truth(doc: dict[str, Any], truth: dict[str, Any]) -> list[dict[str, Any]]:
@@ -648,7 +631,7 @@ def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, refer
     comb = combine_flights(per, reference=reference)
     plots = [*ref.get("plots", []),
              _save_png(flights_figure(per, comb), out / COMBINED_PLOT, dpi=dpi)]
-    flights = {f: {**_jsonable(d), "dir": dirs[f]} for f, d in per.items()}
+    flights = {f: {**to_jsonable(d, nan_to_null=True), "dir": dirs[f]} for f, d in per.items()}
     doc: dict[str, Any] = {
         "grid": ref["grid"], **comb,
         "regions": "regions.geojson",
@@ -659,6 +642,6 @@ def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, refer
     }
     if extra:
         doc.update(extra)
-    write_json(out / "diagnosis.json", _jsonable(doc))
+    write_json(out / "diagnosis.json", to_jsonable(doc, nan_to_null=True))
     write_text(out / "report.md", _combined_markdown(doc, per, dirs))
     return doc

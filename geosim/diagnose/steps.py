@@ -19,6 +19,7 @@ satellite pixels at the centre of the common valid area (the UAV part of it is
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import time
@@ -40,9 +41,10 @@ from geosim.diagnose.simulate import QSimulator
 from geosim.engine import parallel_map
 from geosim.errors import DiagnosisError, ExtentError
 from geosim.io.paths import safe_name, unique_name
-from geosim.io.raster import image_band_indexes, open_raster, read_valid_mask
+from geosim.io.raster import RasterData, open_raster, read_valid_mask, read_window
 from geosim.physics.radiometry import luma
 from geosim.prepare.grid import sat_grid_offset
+from geosim.prepare.reproject import reproject_to_array
 from geosim.result import StepResult
 from geosim.rundir import RunDir, RunPath
 
@@ -96,25 +98,61 @@ def _central_window(valid: np.ndarray, max_px: int) -> tuple[slice, slice]:
     return slice(r0, r0 + h), slice(c0, c0 + w)
 
 
-def diagnose_grids(uav: np.ndarray, uav_valid: np.ndarray, sat: np.ndarray,
-                   sat_valid: np.ndarray, sat_transform: Affine, crs: CRS, out_dir: Path, *,
-                   phi: int, q_base: float | None = None, seed: int = 0,
-                   q_min: float = 0.5, q_max: float = 8.0, sources: list[str] | None = None,
-                   extra: dict[str, Any] | None = None, dpi: int = DEFAULT_DPI
-                   ) -> dict[str, Any]:
-    """Diagnose co-gridded arrays (UAV at sat/phi, satellite at the sat grid) and write
-    (figures at ``dpi``)."""
-    uav, sat = common_bands(uav, sat)
-    sim = QSimulator(uav.astype(np.float32), phi=phi, valid=uav_valid, q_min=0.6)
+@dataclass(frozen=True)
+class FlightPixels:
+    """What one flight's diagnosis reads: a satellite window and the UAV pixels under it.
+
+    Attributes
+    ----------
+    uav
+        The flight on the UAV grid nested in the satellite window (pixel size
+        ``sat.transform.a / phi``, same origin).
+    sat
+        The satellite scene's window (its ``transform`` and ``crs`` place every output).
+    q_base
+        Calibrated Q to start from (None: calibrate here by Laplacian variance).
+    sources
+        Input files, recorded in the provenance tags.
+    """
+
+    uav: RasterData
+    sat: RasterData
+    q_base: float | None = None
+    sources: tuple[str, ...] = ()
+
+    @classmethod
+    def of_arrays(cls, uav: np.ndarray, sat: np.ndarray, *, sat_transform: Affine, crs: CRS,
+                  phi: int, uav_valid: np.ndarray | None = None,
+                  sat_valid: np.ndarray | None = None, q_base: float | None = None
+                  ) -> FlightPixels:
+        """From in-memory ``(bands, rows, cols)`` arrays: the UAV grid is the satellite
+        window's grid refined ``phi`` times (same origin); masks default to all valid."""
+        def data(a: np.ndarray, valid: np.ndarray | None, t: Affine) -> RasterData:
+            v = np.ones(a.shape[-2:], bool) if valid is None else np.asarray(valid, bool)
+            return RasterData(array=a, valid=v, transform=t, crs=crs,
+                              band_names=(None,) * a.shape[0])
+
+        return cls(uav=data(uav, uav_valid, sat_transform * Affine.scale(1.0 / phi)),
+                   sat=data(sat, sat_valid, sat_transform), q_base=q_base)
+
+
+def diagnose_grids(pixels: FlightPixels, out_dir: Path, *, phi: int, seed: int = 0,
+                   q_min: float = 0.5, q_max: float = 8.0, extra: dict[str, Any] | None = None,
+                   dpi: int = DEFAULT_DPI) -> dict[str, Any]:
+    """Diagnose one flight's co-gridded pixels (UAV at sat/phi, satellite at the sat grid)
+    and write diagnosis.json, GeoTIFFs and figures (at ``dpi``) into ``out_dir``."""
+    sat_transform, crs = pixels.sat.transform, pixels.sat.crs
+    uav, sat = common_bands(pixels.uav.array, pixels.sat.array)
+    sim = QSimulator(uav.astype(np.float32), phi=phi, valid=pixels.uav.valid, q_min=0.6)
     s0 = sim(2.0)
-    valid = sat_valid & sim_valid(uav_valid, phi, s0.shape[-2:])
+    valid = pixels.sat.valid & sim_valid(pixels.uav.valid, phi, s0.shape[-2:])
+    q_base = pixels.q_base
     if q_base is None:
         q_base = calibrate_q_lv(sim, luma(sat), valid, q_min=q_min, q_max=q_max)
     diag = diagnose_arrays(sat, sim, q_base=q_base, rng=np.random.default_rng(seed),
                            valid=valid, gsd_m=abs(sat_transform.a), q_lo=0.7)
-    doc = write_diagnosis(diag, out_dir, transform=sat_transform, crs=crs, sources=sources,
-                          extra=extra, dpi=dpi)
-    return doc
+    return write_diagnosis(diag, out_dir, transform=sat_transform, crs=crs,
+                           sources=list(pixels.sources), extra=extra, dpi=dpi)
 
 
 def common_bands(uav: np.ndarray, sat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -183,10 +221,10 @@ def _flight_dir(flight: str, taken: set[str]) -> str:
 
 @dataclass(frozen=True)
 class DiagnoseFlightTask:
-    """One flight to diagnose: ``load()`` gives :func:`diagnose_grids`' arrays (picklable)."""
+    """One flight to diagnose: ``load()`` reads its :class:`FlightPixels` (picklable)."""
 
     flight: str
-    load: Callable[[], dict[str, Any]]
+    load: Callable[[], FlightPixels]
     out_dir: Path
     phi: int
     seed: int
@@ -199,15 +237,14 @@ def diagnose_flight_task(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | Non
     """Diagnose one flight into ``task.out_dir``: (diagnosis.json dict, None), or
     (None, why) when it cannot be diagnosed (too little overlap, no usable data)."""
     try:
-        kw = task.load()
-        return diagnose_grids(phi=task.phi, seed=task.seed, q_min=task.q_min,
-                              q_max=task.q_max, out_dir=task.out_dir,
-                              extra={"flight": task.flight}, dpi=task.dpi, **kw), None
+        return diagnose_grids(task.load(), task.out_dir, phi=task.phi, seed=task.seed,
+                              q_min=task.q_min, q_max=task.q_max,
+                              extra={"flight": task.flight}, dpi=task.dpi), None
     except (DiagnosisError, ExtentError) as exc:
         return None, str(exc)
 
 
-def diagnose_flights(loaders: list[tuple[str, Callable[[], dict[str, Any]]]], out_dir: Path, *,
+def diagnose_flights(loaders: list[tuple[str, Callable[[], FlightPixels]]], out_dir: Path, *,
                      reference: str | None, phi: int, seed: int = 0, q_min: float = 0.5,
                      q_max: float = 8.0, dpi: int = DEFAULT_DPI) -> dict[str, Any]:
     """Diagnose several flights one at a time and write the combined verdict.
@@ -215,11 +252,10 @@ def diagnose_flights(loaders: list[tuple[str, Callable[[], dict[str, Any]]]], ou
     Parameters
     ----------
     loaders
-        (flight id, load) pairs in site order; ``load()`` returns the keyword arguments
-        of :func:`diagnose_grids` for that flight (``uav``, ``uav_valid``, ``sat``,
-        ``sat_valid``, ``sat_transform``, ``crs``, optional ``q_base`` and ``sources``),
-        or raises :class:`~geosim.errors.DiagnosisError` / ``ExtentError`` when the flight
-        cannot be diagnosed (it is then skipped, with the reason in ``flights_skipped``).
+        (flight id, load) pairs in site order; ``load()`` returns the flight's
+        :class:`FlightPixels`, or raises :class:`~geosim.errors.DiagnosisError` /
+        ``ExtentError`` when the flight cannot be diagnosed (it is then skipped, with the
+        reason in ``flights_skipped``).
     reference
         The flight whose GeoTIFFs, maps and plots are copied to the top level (default,
         or when it was skipped: the first diagnosed flight).
@@ -267,7 +303,7 @@ def _read_q_base(path: Path, flight: str) -> float | None:
     return None
 
 
-def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> dict[str, Any]:
+def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> FlightPixels:
     """The satellite window over one aligned flight and the flight's UAV pixels under it."""
     uav_path = run.require_aligned(flight)
     with open_raster(sat_path, what="satellite on grid") as ds, \
@@ -286,18 +322,13 @@ def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> dict[str
         rs, cs = _central_window(svalid, MAX_SAT_PX)
         win = rasterio.windows.Window(c0 + cs.start, r0 + rs.start, cs.stop - cs.start,
                                       rs.stop - rs.start)
-        sat = ds.read(image_band_indexes(ds)[:3], window=win).astype(float)
-        sval = read_valid_mask(ds, win)
-        st = ds.window_transform(win)
-        crs = ds.crs
+        sat = read_window(ds, win, max_bands=3, out_dtype=np.float64, path=sat_path)
         uwin = rasterio.windows.Window((win.col_off - col_off) * phi,
                                        (win.row_off - row_off) * phi,
-                                       sat.shape[-1] * phi, sat.shape[-2] * phi)
-        uav = du.read(image_band_indexes(du)[:3], window=uwin).astype(np.float32)
-        uval = read_valid_mask(du, uwin)
-    return {"uav": uav, "uav_valid": uval, "sat": sat, "sat_valid": sval, "sat_transform": st,
-            "crs": crs, "q_base": _read_q_base(run.calibration_json, flight),
-            "sources": [str(sat_path), str(uav_path)]}
+                                       win.width * phi, win.height * phi)
+        uav = read_window(du, uwin, max_bands=3, out_dtype=np.float32, path=uav_path)
+    return FlightPixels(uav=uav, sat=sat, q_base=_read_q_base(run.calibration_json, flight),
+                        sources=(str(sat_path), str(uav_path)))
 
 
 def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResult:
@@ -341,14 +372,6 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
     return StepResult(summary=text, outputs=outputs, record=summary)
 
 
-def _to_grid(path: Path, crs: CRS, transform: Affine, shape: tuple[int, int], what: str
-             ) -> tuple[np.ndarray, np.ndarray]:
-    from geosim.prepare.reproject import reproject_to_array
-
-    return reproject_to_array(path, crs=crs, transform=transform, shape=shape, max_bands=3,
-                              what=what)
-
-
 def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
                     out_dir: str | Path, *, uav_gsd_m: float = 0.05, sat_gsd_m: float = 0.5,
                     crs: str | None = None, seed: int = 0, q_min: float = 0.5,
@@ -379,7 +402,7 @@ def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
             dst_crs = utm_crs_for_lonlat((b[0] + b[2]) / 2, (b[1] + b[3]) / 2)
         sb = transform_bounds(ds.crs, dst_crs, *ds.bounds)
 
-    def load(uav_path: Path) -> dict[str, Any]:
+    def load(uav_path: Path) -> FlightPixels:
         with open_raster(uav_path, what="--uav") as du:
             ub = transform_bounds(du.crs, dst_crs, *du.bounds)
         left, bottom = max(sb[0], ub[0]), max(sb[1], ub[1])
@@ -397,11 +420,12 @@ def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,
         h = int(np.floor((top - bottom) / sat_gsd_m))
         st = Affine(sat_gsd_m, 0, left, 0, -sat_gsd_m, top)
         ut = Affine(uav_gsd_m, 0, left, 0, -uav_gsd_m, top)
-        sat, sval = _to_grid(sat_path, dst_crs, st, (h, w), "--satellite")
-        uav, uval = _to_grid(uav_path, dst_crs, ut, (h * phi, w * phi), "--uav")
-        return {"uav": uav, "uav_valid": uval, "sat": sat.astype(float), "sat_valid": sval,
-                "sat_transform": st, "crs": dst_crs,
-                "sources": [str(sat_path), str(uav_path)]}
+        sat = reproject_to_array(sat_path, crs=dst_crs, transform=st, shape=(h, w),
+                                 max_bands=3, what="--satellite")
+        uav = reproject_to_array(uav_path, crs=dst_crs, transform=ut, shape=(h * phi, w * phi),
+                                 max_bands=3, what="--uav")
+        return FlightPixels(uav=uav, sat=dataclasses.replace(sat, array=sat.array.astype(float)),
+                            sources=(str(sat_path), str(uav_path)))
 
     ids: list[str] = []
     taken: set[str] = set()

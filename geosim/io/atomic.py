@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -165,6 +166,21 @@ def write_failure(exc: BaseException, path: str | os.PathLike[str]) -> OutputErr
                        "choose a writable --out, then rerun (nothing was half-written)")
 
 
-def to_jsonable(obj: Any) -> Any:
-    """``obj`` as plain JSON types (what reading back its JSON text would give)."""
-    return json.loads(json.dumps(obj, default=json_default))
+def to_jsonable(obj: Any, *, nan_to_null: bool = False) -> Any:
+    """``obj`` as plain JSON types (what reading back its JSON text would give).
+
+    With ``nan_to_null``, non-finite floats (NaN, ±inf: not JSON, RFC 8259) become
+    ``None``, so that strict readers accept the file.
+    """
+    out = json.loads(json.dumps(obj, default=json_default))
+    return _finite(out) if nan_to_null else out
+
+
+def _finite(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
+    return obj

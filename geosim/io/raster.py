@@ -136,10 +136,55 @@ class RasterData:
         return self.valid.shape  # type: ignore[return-value]
 
 
+def read_window(ds: rasterio.DatasetReader, window: Window | None = None, *,
+                bands: Sequence[int] | None = None, max_bands: int | None = None,
+                out_dtype: Any = None, boundless: bool = False,
+                path: str | os.PathLike[str] | None = None) -> RasterData:
+    """Read image bands and the valid mask of an opened raster (or of a window of it).
+
+    Parameters
+    ----------
+    ds
+        An opened rasterio dataset (:func:`open_raster`).
+    window
+        Only this window (default: the whole raster).
+    bands
+        1-based band indexes (default: every image band, alpha excluded).
+    max_bands
+        Keep at most this many of those bands (``3``: RGB of an RGB + NIR raster).
+    out_dtype
+        Data type to read into (default: the file's).
+    boundless
+        Allow a window that reaches outside the raster: pixels outside read as 0 and
+        invalid (the first band's mask decides validity there).
+    path
+        Recorded in :attr:`RasterData.path` (default: the dataset's name).
+    """
+    idx = list(bands) if bands is not None else image_band_indexes(ds)
+    if max_bands is not None:
+        idx = idx[:max_bands]
+    outside = window is not None and boundless and not (
+        window.col_off >= 0 and window.row_off >= 0
+        and window.col_off + window.width <= ds.width
+        and window.row_off + window.height <= ds.height)
+    if outside:
+        array = ds.read(idx, window=window, boundless=True, fill_value=0, out_dtype=out_dtype)
+        valid = ds.read_masks(1, window=window, boundless=True) > 0
+    else:
+        array = ds.read(idx, window=window, out_dtype=out_dtype)
+        valid = read_valid_mask(ds, window)
+    return RasterData(
+        array=array, valid=valid,
+        transform=ds.window_transform(window) if window is not None else ds.transform,
+        crs=ds.crs, band_names=tuple(ds.descriptions[i - 1] for i in idx),
+        nodata=ds.nodata, path=Path(path if path is not None else ds.name))
+
+
 def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
                 window: Window | None = None, bands: Sequence[int] | None = None,
-                out_dtype: Any = None, require_crs: bool = True) -> RasterData:
-    """Read image bands and the valid mask of a raster (or of a window of it).
+                max_bands: int | None = None, out_dtype: Any = None,
+                boundless: bool = False, require_crs: bool = True) -> RasterData:
+    """Open ``path`` (:func:`open_raster`) and :func:`read_window` it.
 
     Parameters
     ----------
@@ -147,23 +192,14 @@ def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
         The raster.
     what
         Words naming it in error messages (``"UAV tile"``).
-    window
-        Only this window (default: the whole raster).
-    bands
-        1-based band indexes (default: every image band, alpha excluded).
-    out_dtype
-        Data type to read into (default: the file's).
+    window, bands, max_bands, out_dtype, boundless
+        As for :func:`read_window`.
     require_crs
         Refuse a raster without a CRS (:func:`open_raster`).
     """
     with open_raster(path, what=what, require_crs=require_crs) as ds:
-        idx = list(bands) if bands is not None else image_band_indexes(ds)
-        array = ds.read(idx, window=window, out_dtype=out_dtype)
-        return RasterData(
-            array=array, valid=read_valid_mask(ds, window),
-            transform=ds.window_transform(window) if window is not None else ds.transform,
-            crs=ds.crs, band_names=tuple(ds.descriptions[i - 1] for i in idx),
-            nodata=ds.nodata, path=Path(path))
+        return read_window(ds, window, bands=bands, max_bands=max_bands, out_dtype=out_dtype,
+                           boundless=boundless, path=path)
 
 
 def geotiff_profile(*, width: int, height: int, count: int, dtype: str | np.dtype,

@@ -2,22 +2,17 @@
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from geosim.io.atomic import atomic_path, write_json
+from geosim.io.paths import safe_name
 from geosim.overlay.check import OverlayResult, read_on_grid
 
 #: Arrows in the GeoJSON and the PNG are drawn this many times longer than the shift.
 ARROW_SCALE = 10.0
-
-
-def slug(name: str) -> str:
-    """A file-name-safe version of a pair name."""
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_")
 
 
 def arrows_geodataframe(results: Sequence[OverlayResult], *, arrow_scale: float = ARROW_SCALE):
@@ -115,7 +110,7 @@ def write_overlay_outputs(results: Sequence[OverlayResult], out_dir: Path, *,
     pairs = []
     for r in results:
         s = r.summary()
-        png = out_dir / f"overlay_{slug(r.name)}.png"
+        png = out_dir / f"overlay_{safe_name(r.name, default='pair')}.png"
         plot_pair(r, png, dpi=dpi)
         s["png"] = png.name
         mag = s["median_shift_magnitude_m"]

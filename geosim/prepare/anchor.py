@@ -67,7 +67,13 @@ from affine import Affine
 from rasterio.windows import Window
 
 from geosim.errors import AlignmentError, GeosimError
-from geosim.io.raster import image_band_indexes, read_valid_mask
+from geosim.io.raster import (
+    RasterData,
+    image_band_indexes,
+    open_raster,
+    read_valid_mask,
+    read_window,
+)
 from geosim.prepare.alignment import _3x3, correction_affine
 
 #: Pixels darker than this fraction of an image's median grey are masked (shadows,
@@ -458,21 +464,11 @@ def read_area_averaged(path: str | os.PathLike[str], window: Window, phi: int, *
     return grey, valid
 
 
-def read_satellite_window(path: str | os.PathLike[str], window: Window
-                          ) -> tuple[np.ndarray, np.ndarray, Affine]:
-    """Grey level (BT.601 luma), valid mask and window transform of ``grid/satellite.tif``."""
-    from geosim.align.phasecorr import as_grey
-
-    with rasterio.open(path) as ds:
-        inside = (window.col_off >= 0 and window.row_off >= 0
-                  and window.col_off + window.width <= ds.width
-                  and window.row_off + window.height <= ds.height)
-        bands = image_band_indexes(ds)[:3]
-        img = ds.read(bands, window=window, boundless=not inside, fill_value=0)
-        valid = (read_valid_mask(ds, window=window) if inside
-                 else ds.read_masks(1, window=window, boundless=True) > 0)
-        transform = ds.window_transform(window)
-    return as_grey(img).astype(np.float32), valid, transform
+def read_satellite_window(path: str | os.PathLike[str], window: Window) -> RasterData:
+    """The RGB bands, valid mask and window transform of ``grid/satellite.tif`` (the window
+    may reach outside the scene: those pixels are invalid)."""
+    with open_raster(path, what="satellite scene on the shared grid") as ds:
+        return read_window(ds, window, max_bands=3, boundless=True, path=path)
 
 
 __all__ = ["AnchorFit", "DARK_FRACTION", "HIGHPASS_SIGMA_PX", "METHOD", "anchor_affine",

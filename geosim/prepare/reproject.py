@@ -33,9 +33,11 @@ from tqdm import tqdm
 
 from geosim.errors import RasterError
 from geosim.io.raster import (
+    RasterData,
     band_descriptions,
     create_geotiff,
     image_band_indexes,
+    open_raster,
     read_valid_mask,
 )
 
@@ -182,8 +184,6 @@ def reproject_to_grid(src_path: str | os.PathLike[str], dst_path: str | os.PathL
     dict
         ``valid_px`` (valid output pixels), ``bands``, ``dtype``, ``source_crs``.
     """
-    from geosim.io.raster import open_raster
-
     kernel = resampling_method(resampling)
     rows, cols = shape
     with open_raster(src_path, what=what) as src:
@@ -239,8 +239,7 @@ def _iter_windows(width: int, height: int, block_px: int):
 
 def reproject_to_array(src_path: str | os.PathLike[str], *, crs: CRS, transform: Affine,
                        shape: tuple[int, int], max_bands: int | None = None,
-                       resampling: str = "bicubic", what: str = "raster"
-                       ) -> tuple[np.ndarray, np.ndarray]:
+                       resampling: str = "bicubic", what: str = "raster") -> RasterData:
     """Reproject a raster file onto a (small) grid held in memory, as float32.
 
     The same regridding as :func:`reproject_to_grid` (:func:`reproject_window`: invalid
@@ -249,20 +248,24 @@ def reproject_to_array(src_path: str | os.PathLike[str], *, crs: CRS, transform:
 
     Returns
     -------
-    (image, valid)
-        ``(bands, rows, cols)`` float32 (0 where invalid) and the ``(rows, cols)`` mask.
+    RasterData
+        ``array`` ``(bands, rows, cols)`` float32 (0 where invalid), ``valid`` the
+        ``(rows, cols)`` mask, on the grid ``transform`` / ``crs``, with the source's band
+        descriptions.
     """
-    from geosim.io.raster import open_raster
-
     rows, cols = shape
     with open_raster(src_path, what=what) as src:
         bands = image_band_indexes(src)[:max_bands]
+        names = tuple(src.descriptions[i - 1] for i in bands)
         swin = source_window_for(src, crs, window_bounds(Window(0, 0, cols, rows), transform))
         if swin is None:
-            return (np.zeros((len(bands), rows, cols), np.float32),
-                    np.zeros((rows, cols), dtype=bool))
-        image = src.read(bands, window=swin).astype(np.float32)
-        valid = read_valid_mask(src, window=swin)
-        return reproject_window(image, valid, src_transform=src.window_transform(swin),
-                                src_crs=src.crs, dst_transform=transform, dst_crs=crs,
-                                dst_shape=(rows, cols), resampling=resampling_method(resampling))
+            image = np.zeros((len(bands), rows, cols), np.float32)
+            valid = np.zeros((rows, cols), dtype=bool)
+        else:
+            image, valid = reproject_window(
+                src.read(bands, window=swin).astype(np.float32),
+                read_valid_mask(src, window=swin), src_transform=src.window_transform(swin),
+                src_crs=src.crs, dst_transform=transform, dst_crs=crs,
+                dst_shape=(rows, cols), resampling=resampling_method(resampling))
+    return RasterData(array=image, valid=valid, transform=transform, crs=CRS.from_user_input(crs),
+                      band_names=names, path=Path(src_path))

@@ -20,6 +20,7 @@ import numpy as np
 from affine import Affine
 from rasterio.windows import Window
 
+from geosim.align.phasecorr import as_grey
 from geosim.config import SiteConfig
 from geosim.engine import parallel_map
 from geosim.errors import AlignmentError, ExtentError
@@ -295,7 +296,8 @@ def anchor_to_satellite(site: SiteConfig, out: RunPath, grid: SiteGrid, window: 
                                                      block_px=(BLOCK_PX // phi) * phi)
     sat_win = Window(int(window.col_off) // phi, int(window.row_off) // phi,
                      int(window.width) // phi, int(window.height) // phi)
-    sat_grey, sat_valid, sat_t = anc.read_satellite_window(sat_path, sat_win)
+    sat = anc.read_satellite_window(sat_path, sat_win)
+    sat_grey, sat_valid, sat_t = as_grey(sat.array), sat.valid, sat.transform
     sat_name = site.satellite.image if site.satellite is not None else sat_path
     try:
         fit = anc.register_to_satellite(ref_grey, ref_valid, sat_grey, sat_valid,
