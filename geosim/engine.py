@@ -107,12 +107,9 @@ def _setup_worker(quiet: bool = False) -> dict[str, str]:
         logging.getLogger("distributed.worker").setLevel(logging.CRITICAL)
     for key, value in WORKER_ENV.items():
         os.environ.setdefault(key, value)
-    try:
-        import cv2
+    import cv2
 
-        cv2.setNumThreads(1)
-    except ImportError:  # pragma: no cover - cv2 is a dependency
-        pass
+    cv2.setNumThreads(1)
     return _geosim_identity()
 
 
@@ -425,12 +422,7 @@ def parallel_map(fn: Callable[[T], R], items: Iterable[T], *,
     return active().map(fn, items, desc=desc)
 
 
-def describe_active() -> dict[str, Any]:
-    """:meth:`Engine.describe` of the active engine (for ``run.json``)."""
-    return active().describe()
-
-
 __all__: Sequence[str] = (
     "Engine", "InProcess", "DaskEngine", "LocalCluster", "SchedulerCluster", "make_engine",
-    "open_engine", "using", "active", "parallel_map", "describe_active", "default_workers",
+    "open_engine", "using", "active", "parallel_map", "default_workers",
 )

@@ -240,9 +240,6 @@ class RunDir:
     def require_grid(self) -> Path:
         return self.require(self.grid_json, "grid")
 
-    def require_grid_raster(self, flight_id: str) -> Path:
-        return self.require(self.grid_raster(flight_id), "grid", what=f"(flight {flight_id})")
-
     def require_satellite_grid(self) -> Path:
         return self.require(self.satellite_grid, "grid",
                             what="(the satellite scene on the shared grid)")

@@ -78,7 +78,7 @@ __all__ = [
 
 #: Default acceptance threshold on the confidences of this package (used by
 #: :func:`geosim.align.register_similarity` and :func:`geosim.align.local_shift_field`).
-#: Measured (``readme_parts/align.md``): unrelated synthetic textures give 0.00,
+#: Measured (``docs/alignment.md``): unrelated synthetic textures give 0.00,
 #: unrelated real SJER tiles 0.00 (median; 1 of 198 above 0.1), matched 2017/2018
 #: SJER tiles across seasonal change 0.1–0.86 (median 0.48), same scene 0.85–0.95.
 DEFAULT_MIN_CONFIDENCE = 0.1

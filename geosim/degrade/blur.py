@@ -40,9 +40,6 @@ PAPER_LAPLACIAN = np.array([[1 / 6, 2 / 3, 1 / 6],
                             [1 / 6, 2 / 3, 1 / 6]], dtype=np.float64)
 PAPER_LAPLACIAN.setflags(write=False)
 
-#: Pixels of reach of the kernel on each side.
-KERNEL_REACH_PX = 1
-
 _CHUNK_ROWS = 1024
 
 

@@ -67,9 +67,6 @@ BLUR_FAMILY: dict[str, str] = {
     "motion_smear": "anisotropic", "off_nadir_anisotropy": "anisotropic",
     "resampling": "sampling",
 }
-#: kept for callers of the former held-out rule
-MIN_HELDOUT_GAIN = MIN_CV_GAIN
-AMBIGUITY_BIC = 6.0
 
 
 def delta_bic(without: TransferFit, with_: TransferFit, n_values: int) -> float:

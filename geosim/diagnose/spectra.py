@@ -100,11 +100,6 @@ class CrossSpectrum:
         return np.clip(np.abs(self.s_rs) ** 2 / den, 0.0, 1.0)
 
     @property
-    def noise_power(self) -> np.ndarray:
-        """Power in the real scene not explained linearly by the simulation, S_rr (1 − γ²)."""
-        return self.s_rr * (1.0 - self.coherence)
-
-    @property
     def f_radial(self) -> np.ndarray:
         """Radial frequency |f| in cycles per pixel."""
         return np.hypot(self.fy, self.fx)

@@ -85,8 +85,3 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
                 with contextlib.suppress(FileNotFoundError):
                     leftover.unlink()
 
-
-def is_cog(path: str | os.PathLike[str]) -> bool:
-    """True when GDAL reports ``LAYOUT=COG`` for the file."""
-    with rasterio.open(path) as ds:
-        return ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT", "").upper() == "COG"

@@ -86,13 +86,6 @@ def _reads_of(path: str | os.PathLike[str]) -> Iterator[None]:
         raise RasterError(f"{path}: {failure}") from exc
 
 
-def window_coverage(path: str | os.PathLike[str], window: Window) -> float:
-    """Fraction of ``window`` (may extend past the raster) that is valid data."""
-    with _reads_of(path), rasterio.open(path) as ds:
-        m = ds.read_masks(1, window=window, boundless=True)
-    return float(np.count_nonzero(m)) / m.size
-
-
 def select_tiles(tiles: Sequence[TileSpec], coverage: Mapping[str, Sequence[float]], *,
                  keep_partial: bool) -> list[tuple[TileSpec, dict[str, float]]]:
     """Tiles to cut, with each flight's coverage fraction.

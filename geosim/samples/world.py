@@ -109,10 +109,6 @@ class Layout:
     trough: Trough
     trees: tuple[Tree, ...]
 
-    def fence_lines(self) -> shapely.MultiLineString:
-        """All fences as one geometry."""
-        return shapely.MultiLineString([LineString(f) for f in self.fences])
-
     def paddock_of(self, x: float, y: float) -> str | None:
         """Name of the paddock containing a point, or None."""
         p = Point(x, y)
