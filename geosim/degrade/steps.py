@@ -43,7 +43,7 @@ from geosim.degrade.core import METHODS, degrade_array, to_dtype
 from geosim.degrade.plot import plot_calibration
 from geosim.engine import parallel_map
 from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
-from geosim.io.atomic import write_json
+from geosim.io.atomic import to_jsonable, write_json
 from geosim.io.raster import (
     acquisition_tags,
     image_band_indexes,
@@ -232,15 +232,9 @@ def calibrate_task(task: CalibrateTask) -> CalibrateDone:
         result = calibrate_flight(task.flight, task.flight_path, sat, phi=task.phi,
                                   q_min=task.q_min, q_max=task.q_max)
     # Through JSON now, so that a fresh and a reused record are the same values.
-    result = json.loads(json.dumps(result, default=_json_number))
+    result = to_jsonable(result)
     manifest.record(task.out_dir, key, inputs, params, result=result)
     return CalibrateDone(result, skipped=False)
-
-
-def _json_number(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def run_calibrate(site: SiteConfig, out: RunPath) -> StepResult:

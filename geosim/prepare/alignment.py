@@ -68,7 +68,13 @@ from shapely.geometry.base import BaseGeometry
 from tqdm import tqdm
 
 from geosim.errors import AlignmentError
-from geosim.io.raster import create_geotiff, iter_windows, read_valid_mask
+from geosim.io.raster import (
+    create_geotiff,
+    iter_windows,
+    open_raster,
+    read_valid_mask,
+    read_window,
+)
 from geosim.prepare.grid import SiteGrid, snap_window_to_sat
 
 # --------------------------------------------------------------------------- pure helpers
@@ -304,20 +310,14 @@ def _source_window(m_grid: np.ndarray, out_win: Window, grid_shape: tuple[int, i
 
 def read_grey_window(path: str | os.PathLike[str], window: Window
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Grey level (BT.601 luma of RGB, float32) and valid mask of a window of a raster."""
+    """Grey level (BT.601 luma of RGB, float32) and valid mask of a window of a raster
+    (the window may reach outside it: those pixels are invalid)."""
     from geosim.align.phasecorr import as_grey
 
-    with rasterio.open(path) as ds:
-        bands = [1, 2, 3] if ds.count >= 3 else [1]
-        img = ds.read(bands, window=window, boundless=True, fill_value=0)
-        valid = read_valid_mask(ds, window=window) if _inside(ds, window) else \
-            ds.read_masks(1, window=window, boundless=True) > 0
-    return as_grey(img), valid
-
-
-def _inside(ds: rasterio.DatasetReader, w: Window) -> bool:
-    return (w.col_off >= 0 and w.row_off >= 0 and w.col_off + w.width <= ds.width
-            and w.row_off + w.height <= ds.height)
+    with open_raster(path, what="raster to register", require_crs=False) as ds:
+        data = read_window(ds, window, bands=[1, 2, 3] if ds.count >= 3 else [1],
+                           boundless=True, path=path)
+    return as_grey(data.array), data.valid
 
 
 def apply_alignment(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str], *,
