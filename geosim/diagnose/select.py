@@ -36,7 +36,7 @@ from geosim.diagnose.fit import (
     fit_transfer,
 )
 
-__all__ = ["BlurSelection", "Alternative", "Step", "select_blur", "delta_bic",
+__all__ = ["BlurSelection", "Alternative", "AcceptedEffect", "select_blur", "delta_bic",
            "select_radiometry", "cv_chi2", "MIN_DELTA_BIC", "MIN_CV_GAIN", "AMBIGUITY_CV",
            "EFFECT_SIZE", "BLUR_FAMILY"]
 
@@ -86,7 +86,7 @@ class Alternative:
 
 
 @dataclass
-class Step:
+class AcceptedEffect:
     """One accepted effect with its evidence (``heldout_gain`` = relative CV χ² drop)."""
 
     name: str
@@ -102,7 +102,7 @@ class BlurSelection:
 
     null: TransferFit
     final: TransferFit
-    steps: list[Step] = field(default_factory=list)
+    steps: list[AcceptedEffect] = field(default_factory=list)
     tried: dict[str, float] = field(default_factory=dict)   # last ΔBIC of each candidate
     cv_gain: dict[str, float] = field(default_factory=dict)  # last CV gain of each candidate
     at_bound: set[str] = field(default_factory=set)          # fits pinned at a bound
@@ -203,7 +203,7 @@ def select_blur(full: SpectralData, folds: Folds | None = None, *,
         cur_fit = fits[best]
         if folds:
             cur_cv = cur_cv * (1.0 - gains[best])
-        sel.steps.append(Step(best, dbics[best], float(gains[best]), alts, cur_fit))
+        sel.steps.append(AcceptedEffect(best, dbics[best], float(gains[best]), alts, cur_fit))
     sel.final = cur_fit
     return sel
 
