@@ -109,3 +109,46 @@ def test_read_raster_window_round_trip(tmp_path: Path) -> None:
                                     6190000.0 - 2 * 0.05)
     assert data.crs.to_epsg() == 28356 and data.nodata == 0 and data.shape == (20, 30)
     assert data.band_names == (None, None, None)
+
+
+def test_to_jsonable_nan_to_null_gives_strict_json() -> None:
+    """The one JSON converter: numpy values become plain JSON; with ``nan_to_null`` the
+    non-finite floats become null, so a strict reader (no NaN literal) accepts the text."""
+    from geosim.io.atomic import to_jsonable
+
+    doc = {"a": np.float64("nan"), "b": [np.inf, 1.5, np.int64(2)], 3: (np.bool_(True),),
+           "c": np.array([[1.0, -np.inf]], dtype=np.float32)}
+    plain = to_jsonable(doc)
+    assert np.isnan(plain["a"]) and plain["b"][0] == float("inf")
+    strict = to_jsonable(doc, nan_to_null=True)
+    assert strict == {"a": None, "b": [None, 1.5, 2], "3": [True], "c": [[1.0, None]]}
+
+    def refuse(token: str) -> float:
+        raise ValueError(token)
+
+    assert json.loads(json.dumps(strict), parse_constant=refuse) == strict
+
+
+def test_read_window_boundless_and_max_bands(tmp_path: Path) -> None:
+    """The typed read edge: a window reaching outside the raster reads as 0 and invalid
+    there, the window transform places it, ``max_bands`` keeps the first bands."""
+    from rasterio.windows import Window
+
+    from geosim.io.raster import read_raster
+
+    data = np.arange(1, 4 * 20 * 30 + 1, dtype=np.uint16).reshape(4, 20, 30)  # no alpha
+    t = Affine(0.5, 0, 500_000.0, 0, -0.5, 6_200_000.0)
+    path = tmp_path / "r.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=30, height=20, count=4, dtype="uint16",
+                       crs="EPSG:32756", transform=t, nodata=None) as ds:
+        ds.write(data)
+        ds.descriptions = ("r", "g", "b", "nir")
+    got = read_raster(path, window=Window(-5, 10, 20, 15), max_bands=3, boundless=True)
+    assert got.array.shape == (3, 15, 20) and got.band_names == ("r", "g", "b")
+    assert got.transform == t * Affine.translation(-5, 10)
+    assert np.array_equal(got.array[:, :10, 5:], data[:3, 10:20, 0:15])
+    assert not got.array[:, :, :5].any() and not got.array[:, 10:, :].any()
+    assert got.valid[:10, 5:].all() and not got.valid[:, :5].any() and not got.valid[10:].any()
+    inside = read_raster(path, window=Window(2, 3, 10, 5))
+    assert inside.array.shape == (4, 5, 10) and inside.valid.all()
+    assert np.array_equal(inside.array, data[:, 3:8, 2:12])
