@@ -207,7 +207,7 @@ def test_noise_seed_draws_reproduce_the_noise() -> None:
     rec = f.draw(np.random.default_rng(0))
     op_a, op_b = f.ops(rec, SHAPE)
     assert op_a.seed == op_b.seed == rec["seed"]
-    w = np.full((3, *SHAPE), 100.0, np.float32)
+    w = np.full((*SHAPE, 3), 100.0, np.float32)  # kernels take (rows, cols, bands)
     out_a = op_a.func(w, 255.0, np.random.default_rng(op_a.seed))
     assert np.array_equal(out_a, op_b.func(w, 255.0, np.random.default_rng(op_b.seed)))
     d = (out_a - w).ravel()

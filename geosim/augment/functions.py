@@ -92,9 +92,9 @@ class PixelOp:
         Function name.
     func
         ``func(work, dn_max, rng) -> work``: ``work`` is a float32
-        ``(bands, rows, cols)`` block of the image (the pipeline processes images
-        in row blocks), ``dn_max`` the full-scale value, ``rng`` the generator made
-        from :attr:`seed` once per image (``None`` if no seed).
+        pixel-interleaved ``(rows, cols, bands)`` block of the image (the pipeline
+        processes images in row blocks), ``dn_max`` the full-scale value, ``rng``
+        the generator made from :attr:`seed` once per image (``None`` if no seed).
     seed
         Seed of the operation's own generator (noise), or ``None``.
     hsv

@@ -22,8 +22,10 @@ drawn (which reproduce the output exactly, see :meth:`Pipeline.replay`).
 Execution. Consecutive affine operations (rotate, shift, alignment, scale,
 shear, mirror) are composed into one matrix and resampled once: one
 interpolation instead of several, and content rotated out of the frame by one
-step and back in by the next is not lost. Consecutive photometric operations
-share one float32 working copy, rounded back to the image dtype once. The
+step and back in by the next is not lost. An affine followed by a local warp is
+resampled together with the warp, in one remap. Consecutive photometric
+operations share one float32 working copy per row block, rounded back to the
+image dtype once. The
 valid-data mask follows with nearest-neighbour interpolation; pixels that come
 from outside the image become invalid (and 0). Boxes move with the pixels (see
 :class:`geosim.augment.geometry.BoxTrack`).
@@ -39,6 +41,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from geosim.augment import photometric as photo
@@ -61,8 +64,8 @@ __all__ = ["AugImage", "AugmentResult", "Pipeline", "AugmentStep", "default_conf
 #: Longest box edge (pixels) between vertices inserted before a non-affine warp.
 DENSIFY_PX = 1.0
 
-#: Rows per block in photometric stages (bounded float32 working memory).
-BLOCK_ROWS = 256
+#: Rows per block in photometric stages (bounded float32 working memory, cache-sized).
+BLOCK_ROWS = 128
 
 _PIPELINE_KEYS = {"min_visible_fraction", "interpolation", "reference_gsd_m"}
 
@@ -370,9 +373,16 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
             affine_names.append(name)
         elif isinstance(op, WarpOp):
             flush_pixel()
-            flush_affine()
             f = op.field
-            image, mask = remap_resample(image, mask, f.u_px, f.v_px, interpolation=interpolation)
+            pending = affine if affine_names and not is_identity(affine) else None
+            if pending is not None:
+                # the pending affine and the warp are resampled in one remap
+                track = track.affine(pending, shape)
+                chain.append({"kind": "affine", "functions": affine_names,
+                              "matrix_px": pending.tolist(), "resampled_with_next_warp": True})
+            affine, affine_names = np.eye(3), []
+            image, mask = remap_resample(image, mask, f.u_px, f.v_px, interpolation=interpolation,
+                                         matrix=pending)
             track = track.map_points(f.forward_points, shape, densify_px=DENSIFY_PX)
             chain.append({"kind": "warp", "functions": [name],
                           "max_px": f.max_px,
@@ -411,21 +421,32 @@ def _photometric_stage(image: np.ndarray, mask: np.ndarray, ops: Sequence[PixelO
                        dn_max: float) -> np.ndarray:
     """Apply photometric ops in float32, row block by row block (bounded memory).
 
-    Each op with a seed gets one generator per image, consumed block after block
-    in a fixed order, so the result does not depend on anything but the seeds.
-    Invalid pixels are set to 0. Returns a new array of the image's dtype.
+    Each block is interleaved to ``(rows, cols, bands)`` float32 once, goes through
+    every op (colour conversions and per-band arithmetic are single OpenCV passes on
+    that layout) and is rounded back to the image dtype once. Each op with a seed
+    gets one generator per image, consumed block after block in a fixed order, so
+    the result does not depend on anything but the seeds. Invalid pixels are set
+    to 0. Returns a new array of the image's dtype.
     """
     ops = _merge_hsv(ops)
     rngs = [np.random.default_rng(op.seed) if op.seed is not None else None for op in ops]
     out = np.empty_like(image)
     rows = image.shape[1]
+    all_valid = bool(mask.all())
     for r0 in range(0, rows, BLOCK_ROWS):
         block = slice(r0, min(rows, r0 + BLOCK_ROWS))
         work = photo.to_work(image[:, block])
         for op, rng in zip(ops, rngs, strict=True):
             work = op.func(work, dn_max, rng)
-        work *= mask[block]
-        out[:, block] = photo.from_work(work, image.dtype)
+        done = photo.from_work(work, image.dtype)
+        planes = [out[i, block] for i in range(done.shape[-1])]
+        if len(planes) > 1:
+            cv2.split(done, planes)  # writes into the output's bands
+        else:
+            planes[0][:] = done[..., 0]
+        if not all_valid:
+            for plane in planes:
+                plane *= mask[block]
     return out
 
 
