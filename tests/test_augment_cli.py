@@ -236,3 +236,46 @@ def test_plot_warp_writes_the_figure(tmp_path: Path) -> None:
     res = CliRunner().invoke(cli, ["augment", "--plot-warp", str(src), "--out", str(out),
                                    "--max-px", "40", "--filter-sigma-px", "5"])
     assert res.exit_code == 2 and "fold" in res.output
+
+
+ALL_KINDS = GEOMETRIC + PHOTOMETRIC + """
+[[functions]]
+name = "shift"
+sigma_px = 3.0
+[[functions]]
+name = "local_warp"
+max_px = 2.0
+filter_sigma_px = 12.0
+mode = "independent"
+[[functions]]
+name = "hue"
+sigma_deg = 20.0
+[[functions]]
+name = "saturation"
+sigma_dn = 20.0
+[[functions]]
+name = "noise"
+sigma_dn = 4.0
+"""
+
+
+def test_one_and_two_workers_give_identical_outputs(run_dir: Path, tmp_path: Path) -> None:
+    # Every kind of stage (affine fused with the local warp, HSV, OpenCV-drawn noise) on a
+    # two-process cluster, where OpenCV runs single-threaded, equals the in-process run.
+    cfg = _config(tmp_path, ALL_KINDS)
+    outs = {}
+    for workers in ("1", "2"):
+        outs[workers] = tmp_path / f"w{workers}"
+        res = _invoke("--pairs", run_dir / "pairs.csv", "--config", cfg, "--n", 2, "--out",
+                      outs[workers], "--seed", 3, "--workers", workers)
+        assert res.exit_code == 0, res.output
+    images = sorted(p.name for p in (outs["1"] / "images").iterdir())
+    assert len(images) == 8 and images == sorted(p.name for p in (outs["2"] / "images").iterdir())
+    for name in images:
+        one, two = _read(outs["1"] / "images" / name), _read(outs["2"] / "images" / name)
+        assert np.array_equal(one[0], two[0]) and np.array_equal(one[1], two[1]), name
+    for name in sorted(p.name for p in (outs["1"] / "labels").iterdir()):
+        assert (outs["1"] / "labels" / name).read_text() == (
+            outs["2"] / "labels" / name).read_text()
+    assert (outs["1"] / "parameters.csv").read_text() == (
+        outs["2"] / "parameters.csv").read_text()
