@@ -9,6 +9,7 @@ import pytest
 from scipy import stats
 
 from geosim.augment import photometric as ph
+from geosim.augment.resample import interleave, planar
 
 
 def _rgb(values: list[tuple[int, int, int]]) -> np.ndarray:
@@ -100,7 +101,13 @@ def test_round_trip_back_to_dtype() -> None:
 
 def test_work_layout_round_trip() -> None:
     planes = np.random.default_rng(1).integers(0, 255, (4, 5, 6), dtype=np.uint8)
-    work = ph.to_work(planes)
-    assert work.shape == (5, 6, 4) and work.dtype == np.float32
-    assert np.array_equal(work, np.moveaxis(planes, 0, -1))
-    assert np.array_equal(ph.to_work(planes[:1])[..., 0], planes[0])
+    hwc = interleave(planes)
+    assert hwc.shape == (5, 6, 4) and np.array_equal(hwc, np.moveaxis(planes, 0, -1))
+    assert np.array_equal(planar(hwc), planes)
+    assert np.array_equal(planar(interleave(planes[:1])), planes[:1])
+    work = ph.to_work(hwc)
+    assert work.dtype == np.float32 and np.array_equal(work, hwc)
+    # from_work writes into a given output block (the pipeline's image rows)
+    dest = np.zeros((9, 6, 4), np.uint8)
+    ph.from_work(work + 0.4, np.uint8, out=dest[2:7])
+    assert np.array_equal(dest[2:7], hwc) and not dest[:2].any() and not dest[7:].any()

@@ -48,32 +48,31 @@ def dn_max_for(dtype: np.dtype | type) -> float:
     raise ValueError(f"unsupported image dtype {dt}; use uint8, uint16, int16 or float32")
 
 
-def to_work(planes: np.ndarray) -> np.ndarray:
-    """Float32 interleaved ``(rows, cols, bands)`` working copy of a ``(bands, rows, cols)`` block.
-
-    Values unchanged (DN).
-    """
-    bands, rows, cols = planes.shape
-    if bands == 1:
-        return planes[0].astype(np.float32).reshape(rows, cols, 1)
-    # cv2.merge interleaves in one pass at the image's own width, then one conversion
-    return cv2.merge(list(planes)).astype(np.float32).reshape(rows, cols, bands)
+def to_work(hwc: np.ndarray) -> np.ndarray:
+    """Float32 working copy of an interleaved ``(rows, cols, bands)`` block (DN, unchanged)."""
+    return hwc.astype(np.float32)
 
 
-def from_work(work: np.ndarray, dtype: np.dtype | type) -> np.ndarray:
+def from_work(work: np.ndarray, dtype: np.dtype | type, *, out: np.ndarray | None = None
+              ) -> np.ndarray:
     """Back to ``dtype`` (same shape): integers are rounded to nearest and clipped to their range.
 
     Rounding is to nearest, ties to even (as :func:`numpy.rint`); OpenCV's saturating
-    conversion does round, clip and cast in one pass.
+    conversion does round, clip and cast in one pass. ``out`` (contiguous, of
+    ``dtype`` and ``work``'s shape) receives the result if given.
     """
     dt = np.dtype(dtype)
+    if out is None:
+        out = np.empty(work.shape, dt)
     if dt.kind == "f":
-        return work.astype(dt)
-    flat = np.ascontiguousarray(work, dtype=np.float32).reshape(work.shape[0], -1)
-    if dt in _CV_DEPTH:
-        return cv2.add(flat, 0.0, dtype=_CV_DEPTH[dt]).reshape(work.shape)
-    info = np.iinfo(dt)
-    return np.clip(np.rint(work), info.min, info.max).astype(dt)
+        out[...] = work
+    elif dt in _CV_DEPTH:
+        flat = np.ascontiguousarray(work, dtype=np.float32).reshape(work.shape[0], -1)
+        cv2.add(flat, 0.0, dst=out.reshape(flat.shape), dtype=_CV_DEPTH[dt])
+    else:
+        info = np.iinfo(dt)
+        out[...] = np.clip(np.rint(work), info.min, info.max)
+    return out
 
 
 def _rgb_count(work: np.ndarray) -> int:

@@ -41,7 +41,6 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from geosim.augment import photometric as photo
@@ -55,7 +54,14 @@ from geosim.augment.functions import (
     hsv_op,
 )
 from geosim.augment.geometry import Boxes, BoxTrack, is_identity
-from geosim.augment.resample import INTERPOLATION, affine_resample, remap_resample
+from geosim.augment.resample import (
+    INTERPOLATION,
+    affine_resample_hwc,
+    interleave,
+    planar,
+    remap_resample_hwc,
+    zero_invalid,
+)
 from geosim.errors import ConfigError, InputFileError
 
 __all__ = ["AugImage", "AugmentResult", "Pipeline", "AugmentStep", "default_config_path",
@@ -340,29 +346,35 @@ class Pipeline:
 
 def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
              min_visible_fraction: float) -> tuple[AugImage, list[dict[str, Any]], int]:
-    """Run one image's operations, fusing consecutive affine and photometric ones."""
-    image, mask = img.image, img.mask
+    """Run one image's operations, fusing consecutive affine and photometric ones.
+
+    The image is interleaved to ``(rows, cols, bands)`` once, goes through every
+    stage in that layout (OpenCV's), and is split back into bands once.
+    """
+    ops = list(ops)
+    mask = img.mask
     shape = img.shape
     track = BoxTrack.from_boxes(img.boxes, shape)
-    dn_max = photo.dn_max_for(image.dtype)
+    dn_max = photo.dn_max_for(img.image.dtype)
+    hwc = interleave(img.image)  # a new array: the caller's is never handed back
     chain: list[dict[str, Any]] = []
     affine = np.eye(3)
     affine_names: list[str] = []
     pixel_ops: list[tuple[str, PixelOp]] = []
 
     def flush_affine() -> None:
-        nonlocal image, mask, track, affine, affine_names
+        nonlocal hwc, mask, track, affine, affine_names
         if affine_names and not is_identity(affine):
-            image, mask = affine_resample(image, mask, affine, interpolation=interpolation)
+            hwc, mask = affine_resample_hwc(hwc, mask, affine, interpolation=interpolation)
             track = track.affine(affine, shape)
             chain.append({"kind": "affine", "functions": affine_names,
                           "matrix_px": affine.tolist()})
         affine, affine_names = np.eye(3), []
 
     def flush_pixel() -> None:
-        nonlocal image, pixel_ops
+        nonlocal hwc, pixel_ops
         if pixel_ops:
-            image = _photometric_stage(image, mask, [op for _, op in pixel_ops], dn_max)
+            hwc = _photometric_stage(hwc, mask, [op for _, op in pixel_ops], dn_max)
             chain.append({"kind": "photometric", "functions": [n for n, _ in pixel_ops]})
         pixel_ops = []
 
@@ -381,8 +393,8 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
                 chain.append({"kind": "affine", "functions": affine_names,
                               "matrix_px": pending.tolist(), "resampled_with_next_warp": True})
             affine, affine_names = np.eye(3), []
-            image, mask = remap_resample(image, mask, f.u_px, f.v_px, interpolation=interpolation,
-                                         matrix=pending)
+            hwc, mask = remap_resample_hwc(hwc, mask, f.u_px, f.v_px,
+                                           interpolation=interpolation, matrix=pending)
             track = track.map_points(f.forward_points, shape, densify_px=DENSIFY_PX)
             chain.append({"kind": "warp", "functions": [name],
                           "max_px": f.max_px,
@@ -392,11 +404,9 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
             pixel_ops.append((name, op))
     flush_affine()
     flush_pixel()
-    # Never hand back the caller's arrays.
-    image = image.copy() if image is img.image else image
-    mask = mask.copy() if mask is img.mask else mask
+    mask = mask.copy() if mask is img.mask else mask  # never hand back the caller's arrays
     boxes, kept = track.to_boxes(min_visible_fraction=min_visible_fraction)
-    return AugImage(image, mask, boxes), chain, int((~kept).sum())
+    return AugImage(planar(hwc), mask, boxes), chain, int((~kept).sum())
 
 
 def _merge_hsv(ops: Sequence[PixelOp]) -> list[PixelOp]:
@@ -417,37 +427,28 @@ def _merge_hsv(ops: Sequence[PixelOp]) -> list[PixelOp]:
     return out
 
 
-def _photometric_stage(image: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp],
+def _photometric_stage(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp],
                        dn_max: float) -> np.ndarray:
     """Apply photometric ops in float32, row block by row block (bounded memory).
 
-    Each block is interleaved to ``(rows, cols, bands)`` float32 once, goes through
-    every op (colour conversions and per-band arithmetic are single OpenCV passes on
-    that layout) and is rounded back to the image dtype once. Each op with a seed
-    gets one generator per image, consumed block after block in a fixed order, so
-    the result does not depend on anything but the seeds. Invalid pixels are set
-    to 0. Returns a new array of the image's dtype.
+    ``hwc`` is the interleaved ``(rows, cols, bands)`` image. Each block is
+    converted to float32 once, goes through every op (colour conversions and
+    per-band arithmetic are single OpenCV passes on that layout) and is rounded
+    back to the image dtype once. Each op with a seed gets one generator per image,
+    consumed block after block in a fixed order, so the result does not depend on
+    anything but the seeds. Invalid pixels are set to 0. Returns a new array.
     """
     ops = _merge_hsv(ops)
     rngs = [np.random.default_rng(op.seed) if op.seed is not None else None for op in ops]
-    out = np.empty_like(image)
-    rows = image.shape[1]
-    all_valid = bool(mask.all())
+    out = np.empty_like(hwc)
+    rows = hwc.shape[0]
     for r0 in range(0, rows, BLOCK_ROWS):
         block = slice(r0, min(rows, r0 + BLOCK_ROWS))
-        work = photo.to_work(image[:, block])
+        work = photo.to_work(hwc[block])
         for op, rng in zip(ops, rngs, strict=True):
             work = op.func(work, dn_max, rng)
-        done = photo.from_work(work, image.dtype)
-        planes = [out[i, block] for i in range(done.shape[-1])]
-        if len(planes) > 1:
-            cv2.split(done, planes)  # writes into the output's bands
-        else:
-            planes[0][:] = done[..., 0]
-        if not all_valid:
-            for plane in planes:
-                plane *= mask[block]
-    return out
+        photo.from_work(work, hwc.dtype, out=out[block])
+    return zero_invalid(out, mask)
 
 
 def flatten_records(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:

@@ -1,11 +1,17 @@
 """Resampling kernels: affine warps and displacement-field remaps of an image and its mask.
 
-Images are bands-first ``(bands, rows, cols)``; masks are ``(rows, cols)`` bool
-(True = valid). Image bands are interpolated bicubically (OpenCV, border
-replicated so that no black fringe bleeds into valid pixels); the mask is
-resampled with nearest neighbour and everything sampled from outside the input
-is marked invalid. Invalid pixels are set to 0 in the output image. Pure
+The public functions take bands-first images ``(bands, rows, cols)``; masks are
+``(rows, cols)`` bool (True = valid). Image bands are interpolated bicubically
+(OpenCV, border replicated so that no black fringe bleeds into valid pixels); the
+mask is resampled with nearest neighbour and everything sampled from outside the
+input is marked invalid. Invalid pixels are set to 0 in the output image. Pure
 functions: nothing is modified in place.
+
+The work is done on pixel-interleaved ``(rows, cols, bands)`` arrays (OpenCV's
+layout: each pixel's source position is computed once for all bands), and the
+pipeline keeps its images in that layout from its first stage to its last
+(:func:`affine_resample_hwc`, :func:`remap_resample_hwc`, :func:`interleave`,
+:func:`planar`), so that a chain of stages converts the layout once each way.
 """
 
 from __future__ import annotations
@@ -15,7 +21,8 @@ import numpy as np
 
 from geosim.augment.geometry import integer_permutation, is_identity, to_cv2_inverse
 
-__all__ = ["affine_resample", "remap_resample", "INTERPOLATION"]
+__all__ = ["INTERPOLATION", "affine_resample", "affine_resample_hwc", "interleave", "planar",
+           "remap_resample", "remap_resample_hwc"]
 
 #: OpenCV interpolation flags by name.
 INTERPOLATION = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR,
@@ -23,6 +30,9 @@ INTERPOLATION = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR,
 
 #: Output rows per block when remapping (bounds the memory of the coordinate maps).
 REMAP_BLOCK_ROWS = 512
+
+#: Most bands OpenCV's warps interpolate in one multi-channel call.
+_CV_MAX_CHANNELS = 4
 
 _CV2_DTYPES = {np.dtype(t) for t in (np.uint8, np.uint16, np.int16, np.float32, np.float64)}
 
@@ -37,10 +47,44 @@ def _check(image: np.ndarray, mask: np.ndarray) -> None:
                          "or float32")
 
 
-def _finish(image: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def interleave(image: np.ndarray) -> np.ndarray:
+    """``(bands, rows, cols)`` → a new contiguous ``(rows, cols, bands)`` array."""
+    bands, rows, cols = image.shape
+    if bands == 1:
+        return image[0].reshape(rows, cols, 1).copy()
+    return cv2.merge(list(image)).reshape(rows, cols, bands)
+
+
+def planar(hwc: np.ndarray) -> np.ndarray:
+    """``(rows, cols, bands)`` → a new contiguous ``(bands, rows, cols)`` array."""
+    rows, cols, bands = hwc.shape
+    out = np.empty((bands, rows, cols), hwc.dtype)
+    if bands == 1:
+        out[0] = hwc[..., 0]
+    else:
+        cv2.split(hwc, list(out))  # writes into the planes
+    return out
+
+
+def zero_invalid(hwc: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Set the pixels of an interleaved image where ``mask`` is False to 0, in place."""
     if not mask.all():
-        image *= mask  # invalid pixels → 0 (a broadcast multiply is faster than indexing)
-    return image, mask
+        invalid = np.logical_not(mask).view(np.uint8)
+        if hwc.shape[-1] <= _CV_MAX_CHANNELS:
+            cv2.bitwise_and(hwc, 0, dst=hwc, mask=invalid)  # one pass, only where invalid
+        else:
+            hwc[~mask] = 0
+    return hwc
+
+
+def _per_channel(hwc: np.ndarray, warp) -> np.ndarray:  # noqa: ANN001 - a cv2 call
+    """Apply ``warp`` (array → array of the same layout) to all bands at once when OpenCV can."""
+    bands = hwc.shape[-1]
+    if bands == 1:
+        return warp(hwc[..., 0])[..., np.newaxis]
+    if bands <= _CV_MAX_CHANNELS:
+        return warp(hwc)
+    return np.stack([warp(np.ascontiguousarray(hwc[..., i])) for i in range(bands)], axis=-1)
 
 
 def affine_resample(image: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *,
@@ -67,37 +111,28 @@ def affine_resample(image: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *,
         indexing, without interpolation.
     """
     _check(image, mask)
+    out, out_mask = affine_resample_hwc(interleave(image), mask, matrix,
+                                        interpolation=interpolation)
+    return planar(out), out_mask
+
+
+def affine_resample_hwc(hwc: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *,
+                        interpolation: str = "cubic") -> tuple[np.ndarray, np.ndarray]:
+    """:func:`affine_resample` of an interleaved ``(rows, cols, bands)`` image (new arrays)."""
     if is_identity(matrix):
-        return image.copy(), mask.copy()
+        return hwc.copy(), mask.copy()
     perm = integer_permutation(matrix)
     if perm is not None:
-        return _permute(image, mask, perm)
+        return _permute(hwc, mask, perm)
     rows, cols = mask.shape
     inv = to_cv2_inverse(matrix)
     flag = INTERPOLATION[interpolation] | cv2.WARP_INVERSE_MAP
-    if image.shape[0] in (3, 4):
-        # One multi-channel warp computes each pixel's source position once for all
-        # bands (cheaper than band by band), by blocks of output rows so that each
-        # block is split back into bands while it is in cache.
-        out = np.empty_like(image)
-        hwc = cv2.merge(list(image))
-        for r0 in range(0, rows, REMAP_BLOCK_ROWS):
-            r1 = min(rows, r0 + REMAP_BLOCK_ROWS)
-            block_inv = inv.copy()
-            block_inv[:, 2] += inv[:, 1] * r0  # output row r of the block is row r0 + r
-            block = cv2.warpAffine(hwc, block_inv, (cols, r1 - r0), flags=flag,
-                                   borderMode=cv2.BORDER_REPLICATE)
-            cv2.split(block, [out[i, r0:r1] for i in range(out.shape[0])])  # in place
-        del hwc
-    else:
-        out = np.empty_like(image)
-        for i, band in enumerate(image):
-            out[i] = cv2.warpAffine(band, inv, (cols, rows), flags=flag,
-                                    borderMode=cv2.BORDER_REPLICATE)
+    out = _per_channel(hwc, lambda a: cv2.warpAffine(a, inv, (cols, rows), flags=flag,
+                                                     borderMode=cv2.BORDER_REPLICATE))
     out_mask = cv2.warpAffine(mask.view(np.uint8), inv, (cols, rows),
                               flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
-    return _finish(out, out_mask)
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
+    return zero_invalid(out, out_mask), out_mask
 
 
 def _axis_slices(sign: int, offset: int, n_out: int, n_src: int) -> tuple[slice, slice] | None:
@@ -115,7 +150,7 @@ def _axis_slices(sign: int, offset: int, n_out: int, n_src: int) -> tuple[slice,
     return slice(o0, o1), slice(s0, stop if stop >= 0 else None, -1)
 
 
-def _permute(image: np.ndarray, mask: np.ndarray, back: np.ndarray
+def _permute(hwc: np.ndarray, mask: np.ndarray, back: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray]:
     """Exact resampling when the backward index map ``back`` (2 × 3 int) permutes pixels.
 
@@ -127,22 +162,22 @@ def _permute(image: np.ndarray, mask: np.ndarray, back: np.ndarray
     if lin[0, 0] == 0:
         # source col = lin01·row + t0 and source row = lin10·col + t1: index the transposed
         # source (its axis 1 is the source col) with (output row, output col).
-        src_img, src_mask = image.transpose(0, 2, 1), mask.T
+        src_img, src_mask = hwc.transpose(1, 0, 2), mask.T
         sr, sc = int(lin[0, 1]), int(lin[1, 0])
         tr, tc = int(t[0]), int(t[1])
     else:
-        src_img, src_mask = image, mask
+        src_img, src_mask = hwc, mask
         sr, sc = int(lin[1, 1]), int(lin[0, 0])
         tr, tc = int(t[1]), int(t[0])
-    out = np.zeros_like(image)
+    out = np.zeros((rows, cols, hwc.shape[-1]), hwc.dtype)
     out_mask = np.zeros_like(mask)
     along_r = _axis_slices(sr, tr, rows, src_mask.shape[0])
     along_c = _axis_slices(sc, tc, cols, src_mask.shape[1])
     if along_r is not None and along_c is not None:
         (o_r, s_r), (o_c, s_c) = along_r, along_c
-        out[:, o_r, o_c] = src_img[:, s_r, s_c]
+        out[o_r, o_c] = src_img[s_r, s_c]
         out_mask[o_r, o_c] = src_mask[s_r, s_c]
-    return _finish(out, out_mask)
+    return zero_invalid(out, out_mask), out_mask
 
 
 def remap_resample(image: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px: np.ndarray,
@@ -169,14 +204,21 @@ def remap_resample(image: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px: 
         would be after the separate affine step.
     """
     _check(image, mask)
+    out, out_mask = remap_resample_hwc(interleave(image), mask, u_px, v_px,
+                                       interpolation=interpolation, matrix=matrix)
+    return planar(out), out_mask
+
+
+def remap_resample_hwc(hwc: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px: np.ndarray,
+                       *, interpolation: str = "cubic", matrix: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`remap_resample` of an interleaved ``(rows, cols, bands)`` image (new arrays)."""
     rows, cols = mask.shape
     if u_px.shape != (rows, cols) or v_px.shape != (rows, cols):
         raise ValueError(f"field shape {u_px.shape}/{v_px.shape} != image {(rows, cols)}")
     inv = None if matrix is None or is_identity(matrix) else to_cv2_inverse(matrix)
-    out = np.empty_like(image)
+    out = np.empty_like(hwc)
     out_mask = np.empty_like(mask)
-    # 3/4 bands: one multi-channel remap per block (source positions computed once; same bits)
-    hwc = cv2.merge(list(image)) if image.shape[0] in (3, 4) else None
     col_idx = np.arange(cols, dtype=np.float32)[np.newaxis, :]
     for r0 in range(0, rows, REMAP_BLOCK_ROWS):
         r1 = min(rows, r0 + REMAP_BLOCK_ROWS)
@@ -202,12 +244,6 @@ def remap_resample(image: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px: 
             m1, m2 = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
         else:
             m1, m2 = map_x, map_y
-        if hwc is not None:
-            block = cv2.remap(hwc, m1, m2, INTERPOLATION[interpolation],
-                              borderMode=cv2.BORDER_REPLICATE)
-            cv2.split(block, [out[i, r0:r1] for i in range(out.shape[0])])  # in place
-            continue
-        for i, band in enumerate(image):
-            out[i, r0:r1] = cv2.remap(band, m1, m2, INTERPOLATION[interpolation],
-                                      borderMode=cv2.BORDER_REPLICATE)
-    return _finish(out, out_mask)
+        out[r0:r1] = _per_channel(hwc, lambda a, m1=m1, m2=m2: cv2.remap(
+            a, m1, m2, INTERPOLATION[interpolation], borderMode=cv2.BORDER_REPLICATE))
+    return zero_invalid(out, out_mask), out_mask
