@@ -203,7 +203,9 @@ def smooth_field(shape: tuple[int, int], *, max_px: float, filter_sigma_px: floa
     a_c = _cubic_interp_matrix(cols, n_c, step, margin)
     u, v = (np.ascontiguousarray(a_r @ (a_c @ c.astype(np.float32).T).T) for c in
             (coarse_u, coarse_v))
-    peak = float(cv2.magnitude(u, v).max())  # max |(u, v)|; OpenCV's is several times faster
+    # max |(u, v)| by row blocks (no full-size temporary; OpenCV's magnitude is fast)
+    peak = max(float(cv2.magnitude(u[r0:r0 + 512], v[r0:r0 + 512]).max())
+               for r0 in range(0, rows, 512))
     scale = max_px / peak if peak > 0 else 0.0
     u *= np.float32(scale)
     v *= np.float32(scale)
