@@ -141,3 +141,20 @@ def test_integer_permutation_detection() -> None:
     assert geo.integer_permutation(geo.rotation_matrix(10.0, (8, 8))) is None
     assert geo.integer_permutation(geo.rotation_matrix(90.0, (8, 8))) is not None
     assert geo.integer_permutation(geo.scale_matrix(2.0, (8, 8))) is None
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_exact_permutation_is_the_same_in_both_layouts(k: int) -> None:
+    from geosim.augment.resample import interleave, permute_exact, planar
+
+    img = np.random.default_rng(k).integers(0, 255, (3, 6, 6), dtype=np.uint8)
+    mask = np.ones((6, 6), bool)
+    mask[0, :2] = False
+    m = geo.shift_matrix(1.0, 0.0) @ geo.rotation_matrix(90.0 * k, (6, 6))
+    planes, pm = permute_exact(img, mask, m, bands_last=False)
+    hwc, hm = permute_exact(interleave(img), mask, m, bands_last=True)
+    assert np.array_equal(planes, planar(hwc)) and np.array_equal(pm, hm)
+    expect = np.zeros_like(img)
+    expect[:, :, 1:] = np.rot90(img * mask, k, axes=(1, 2))[:, :, :-1]
+    assert np.array_equal(planes, expect)
+    assert permute_exact(img, mask, geo.shift_matrix(0.5, 0.0), bands_last=False) is None

@@ -58,6 +58,7 @@ from geosim.augment.resample import (
     INTERPOLATION,
     affine_resample_hwc,
     interleave,
+    permute_exact,
     planar,
     remap_resample_hwc,
     zero_invalid,
@@ -348,24 +349,36 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
              min_visible_fraction: float) -> tuple[AugImage, list[dict[str, Any]], int]:
     """Run one image's operations, fusing consecutive affine and photometric ones.
 
-    The image is interleaved to ``(rows, cols, bands)`` once, goes through every
-    stage in that layout (OpenCV's), and is split back into bands once.
+    The image is interleaved to ``(rows, cols, bands)`` once, at the first stage
+    that interpolates or changes values, goes through every later stage in that
+    layout (OpenCV's), and is split back into bands once. Exact pixel permutations
+    (flips, quarter turns) before that run on the bands-first image.
     """
     ops = list(ops)
     mask = img.mask
     shape = img.shape
     track = BoxTrack.from_boxes(img.boxes, shape)
     dn_max = photo.dn_max_for(img.image.dtype)
-    hwc = interleave(img.image)  # a new array: the caller's is never handed back
+    hwc = img.image  # bands-first until interleaved; never modified in place
+    interleaved = False
     chain: list[dict[str, Any]] = []
     affine = np.eye(3)
     affine_names: list[str] = []
     pixel_ops: list[tuple[str, PixelOp]] = []
 
+    def to_interleaved() -> None:
+        nonlocal hwc, interleaved
+        if not interleaved:
+            hwc, interleaved = interleave(hwc), True
+
     def flush_affine() -> None:
         nonlocal hwc, mask, track, affine, affine_names
         if affine_names and not is_identity(affine):
-            hwc, mask = affine_resample_hwc(hwc, mask, affine, interpolation=interpolation)
+            exact = permute_exact(hwc, mask, affine, bands_last=interleaved)
+            if exact is None:
+                to_interleaved()
+                exact = affine_resample_hwc(hwc, mask, affine, interpolation=interpolation)
+            hwc, mask = exact
             track = track.affine(affine, shape)
             chain.append({"kind": "affine", "functions": affine_names,
                           "matrix_px": affine.tolist()})
@@ -374,6 +387,7 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
     def flush_pixel() -> None:
         nonlocal hwc, pixel_ops
         if pixel_ops:
+            to_interleaved()
             hwc = _photometric_stage(hwc, mask, [op for _, op in pixel_ops], dn_max)
             chain.append({"kind": "photometric", "functions": [n for n, _ in pixel_ops]})
         pixel_ops = []
@@ -393,6 +407,7 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
                 chain.append({"kind": "affine", "functions": affine_names,
                               "matrix_px": pending.tolist(), "resampled_with_next_warp": True})
             affine, affine_names = np.eye(3), []
+            to_interleaved()
             hwc, mask = remap_resample_hwc(hwc, mask, f.u_px, f.v_px,
                                            interpolation=interpolation, matrix=pending)
             track = track.map_points(f.forward_points, shape, densify_px=DENSIFY_PX)
@@ -404,9 +419,11 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
             pixel_ops.append((name, op))
     flush_affine()
     flush_pixel()
-    mask = mask.copy() if mask is img.mask else mask  # never hand back the caller's arrays
+    # never hand back the caller's arrays
+    image = planar(hwc) if interleaved else (hwc.copy() if hwc is img.image else hwc)
+    mask = mask.copy() if mask is img.mask else mask
     boxes, kept = track.to_boxes(min_visible_fraction=min_visible_fraction)
-    return AugImage(planar(hwc), mask, boxes), chain, int((~kept).sum())
+    return AugImage(image, mask, boxes), chain, int((~kept).sum())
 
 
 def _merge_hsv(ops: Sequence[PixelOp]) -> list[PixelOp]:

@@ -21,8 +21,8 @@ import numpy as np
 
 from geosim.augment.geometry import integer_permutation, is_identity, to_cv2_inverse
 
-__all__ = ["INTERPOLATION", "affine_resample", "affine_resample_hwc", "interleave", "planar",
-           "remap_resample", "remap_resample_hwc"]
+__all__ = ["INTERPOLATION", "affine_resample", "affine_resample_hwc", "interleave",
+           "permute_exact", "planar", "remap_resample", "remap_resample_hwc", "zero_invalid"]
 
 #: OpenCV interpolation flags by name.
 INTERPOLATION = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR,
@@ -111,6 +111,11 @@ def affine_resample(image: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *,
         indexing, without interpolation.
     """
     _check(image, mask)
+    if is_identity(matrix):
+        return image.copy(), mask.copy()
+    exact = permute_exact(image, mask, matrix, bands_last=False)
+    if exact is not None:
+        return exact
     out, out_mask = affine_resample_hwc(interleave(image), mask, matrix,
                                         interpolation=interpolation)
     return planar(out), out_mask
@@ -121,9 +126,9 @@ def affine_resample_hwc(hwc: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *
     """:func:`affine_resample` of an interleaved ``(rows, cols, bands)`` image (new arrays)."""
     if is_identity(matrix):
         return hwc.copy(), mask.copy()
-    perm = integer_permutation(matrix)
-    if perm is not None:
-        return _permute(hwc, mask, perm)
+    exact = permute_exact(hwc, mask, matrix, bands_last=True)
+    if exact is not None:
+        return exact
     rows, cols = mask.shape
     inv = to_cv2_inverse(matrix)
     flag = INTERPOLATION[interpolation] | cv2.WARP_INVERSE_MAP
@@ -150,7 +155,21 @@ def _axis_slices(sign: int, offset: int, n_out: int, n_src: int) -> tuple[slice,
     return slice(o0, o1), slice(s0, stop if stop >= 0 else None, -1)
 
 
-def _permute(hwc: np.ndarray, mask: np.ndarray, back: np.ndarray
+def permute_exact(image: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *,
+                  bands_last: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    """Exact resampling (new arrays) when ``matrix`` only permutes whole pixels, else ``None``.
+
+    Flips, multiples of 90° and whole-pixel shifts need no interpolation; they are
+    done by indexing, in either layout (``bands_last``: ``(rows, cols, bands)``,
+    else ``(bands, rows, cols)``), so a chain that only flips needs no layout change.
+    """
+    back = integer_permutation(matrix)
+    if back is None:
+        return None
+    return _permute(image, mask, back, bands_last=bands_last)
+
+
+def _permute(image: np.ndarray, mask: np.ndarray, back: np.ndarray, *, bands_last: bool = True
              ) -> tuple[np.ndarray, np.ndarray]:
     """Exact resampling when the backward index map ``back`` (2 × 3 int) permutes pixels.
 
@@ -158,26 +177,35 @@ def _permute(hwc: np.ndarray, mask: np.ndarray, back: np.ndarray
     linear part (odd multiples of 90°) the source is read transposed.
     """
     rows, cols = mask.shape
+
+    def at(r: slice, c: slice) -> tuple[slice, ...]:
+        return (r, c) if bands_last else (slice(None), r, c)
+
     lin, t = back[:, :2], back[:, 2]
     if lin[0, 0] == 0:
         # source col = lin01·row + t0 and source row = lin10·col + t1: index the transposed
         # source (its axis 1 is the source col) with (output row, output col).
-        src_img, src_mask = hwc.transpose(1, 0, 2), mask.T
+        src_img = image.transpose((1, 0, 2) if bands_last else (0, 2, 1))
+        src_mask = mask.T
         sr, sc = int(lin[0, 1]), int(lin[1, 0])
         tr, tc = int(t[0]), int(t[1])
     else:
-        src_img, src_mask = hwc, mask
+        src_img, src_mask = image, mask
         sr, sc = int(lin[1, 1]), int(lin[0, 0])
         tr, tc = int(t[1]), int(t[0])
-    out = np.zeros((rows, cols, hwc.shape[-1]), hwc.dtype)
+    out = np.zeros(image.shape, image.dtype)  # C order
     out_mask = np.zeros_like(mask)
     along_r = _axis_slices(sr, tr, rows, src_mask.shape[0])
     along_c = _axis_slices(sc, tc, cols, src_mask.shape[1])
     if along_r is not None and along_c is not None:
         (o_r, s_r), (o_c, s_c) = along_r, along_c
-        out[o_r, o_c] = src_img[s_r, s_c]
+        out[at(o_r, o_c)] = src_img[at(s_r, s_c)]
         out_mask[o_r, o_c] = src_mask[s_r, s_c]
-    return zero_invalid(out, out_mask), out_mask
+    if bands_last:
+        return zero_invalid(out, out_mask), out_mask
+    if not out_mask.all():
+        out *= out_mask  # broadcast over the leading band axis: one contiguous pass
+    return out, out_mask
 
 
 def remap_resample(image: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px: np.ndarray,
