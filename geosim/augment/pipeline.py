@@ -41,6 +41,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from geosim.augment import photometric as photo
@@ -384,11 +385,14 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
                           "matrix_px": affine.tolist()})
         affine, affine_names = np.eye(3), []
 
-    def flush_pixel() -> None:
-        nonlocal hwc, pixel_ops
+    def flush_pixel(last: bool = False) -> None:
+        nonlocal hwc, pixel_ops, interleaved
         if pixel_ops:
             to_interleaved()
-            hwc = _photometric_stage(hwc, mask, [op for _, op in pixel_ops], dn_max)
+            # the last stage writes bands-first output directly (no separate split pass)
+            hwc = _photometric_stage(hwc, mask, [op for _, op in pixel_ops], dn_max,
+                                     bands_first=last)
+            interleaved = not last
             chain.append({"kind": "photometric", "functions": [n for n, _ in pixel_ops]})
         pixel_ops = []
 
@@ -418,7 +422,7 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
             flush_affine()
             pixel_ops.append((name, op))
     flush_affine()
-    flush_pixel()
+    flush_pixel(last=True)
     # never hand back the caller's arrays
     image = planar(hwc) if interleaved else (hwc.copy() if hwc is img.image else hwc)
     mask = mask.copy() if mask is img.mask else mask
@@ -445,7 +449,7 @@ def _merge_hsv(ops: Sequence[PixelOp]) -> list[PixelOp]:
 
 
 def _photometric_stage(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp],
-                       dn_max: float) -> np.ndarray:
+                       dn_max: float, *, bands_first: bool = False) -> np.ndarray:
     """Apply photometric ops in float32, row block by row block (bounded memory).
 
     ``hwc`` is the interleaved ``(rows, cols, bands)`` image. Each block is
@@ -453,19 +457,33 @@ def _photometric_stage(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp]
     per-band arithmetic are single OpenCV passes on that layout) and is rounded
     back to the image dtype once. Each op with a seed gets one generator per image,
     consumed block after block in a fixed order, so the result does not depend on
-    anything but the seeds. Invalid pixels are set to 0. Returns a new array.
+    anything but the seeds. Invalid pixels are set to 0. Returns a new array,
+    ``(bands, rows, cols)`` if ``bands_first`` (each block split into the bands
+    while in cache), else interleaved.
     """
     ops = _merge_hsv(ops)
     rngs = [np.random.default_rng(op.seed) if op.seed is not None else None for op in ops]
-    out = np.empty_like(hwc)
-    rows = hwc.shape[0]
+    rows, cols, bands = hwc.shape
+    out = np.empty((bands, rows, cols) if bands_first else hwc.shape, hwc.dtype)
+    all_valid = bool(mask.all())
     for r0 in range(0, rows, BLOCK_ROWS):
         block = slice(r0, min(rows, r0 + BLOCK_ROWS))
         work = photo.to_work(hwc[block])
         for op, rng in zip(ops, rngs, strict=True):
             work = op.func(work, dn_max, rng)
-        photo.from_work(work, hwc.dtype, out=out[block])
-    return zero_invalid(out, mask)
+        if not bands_first:
+            photo.from_work(work, hwc.dtype, out=out[block])
+            continue
+        done = photo.from_work(work, hwc.dtype)
+        planes = [out[i, block] for i in range(bands)]
+        if bands > 1:
+            cv2.split(done, planes)  # writes into the output's bands
+        else:
+            planes[0][...] = done[..., 0]
+        if not all_valid:
+            for plane in planes:
+                plane *= mask[block]
+    return out if bands_first else zero_invalid(out, mask)
 
 
 def flatten_records(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
