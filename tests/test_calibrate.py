@@ -21,6 +21,7 @@ from geosim.degrade.blur import laplacian_moments, laplacian_variance, to_grey
 from geosim.degrade.core import degrade_array, to_dtype
 from geosim.degrade.steps import run_calibrate
 from geosim.errors import CalibrationError, InputFileError, RasterError
+from geosim.io.raster import RasterData
 from geosim.physics import psf
 from tests.helpers import textured_rgb, write_raster
 
@@ -120,7 +121,7 @@ def _reader(grey: np.ndarray, row0: int, col0: int,
     = (first row, end row, first col, end col) in ``grey`` (default: all of it)."""
     lo_r, hi_r, lo_c, hi_c = data or (0, grey.shape[0], 0, grey.shape[1])
 
-    def read(r: int, c: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    def read(r: int, c: int, h: int, w: int) -> RasterData:
         g = np.zeros((h, w), np.float32)
         v = np.zeros((h, w), bool)
         a0, b0 = max(row0 + r, lo_r), max(col0 + c, lo_c)
@@ -129,7 +130,10 @@ def _reader(grey: np.ndarray, row0: int, col0: int,
             sl = (slice(a0 - row0 - r, a1 - row0 - r), slice(b0 - col0 - c, b1 - col0 - c))
             g[sl] = grey[a0:a1, b0:b1]
             v[sl] = True
-        return g, v
+        # pixel (row, col) of grey is map (col, -row): only the arrays matter here
+        return RasterData(array=g[np.newaxis], valid=v,
+                          transform=Affine(1, 0, col0 + c, 0, -1, -(row0 + r)), crs=None,
+                          band_names=("grey",))
     return read
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -36,6 +37,9 @@ from geosim.degrade.blur import (
 from geosim.degrade.core import SpectralDegrader, _check_phi, _check_q
 from geosim.errors import CalibrationError
 from geosim.physics.radiometry import LUMA_WEIGHTS
+
+if TYPE_CHECKING:
+    from geosim.io.raster import RasterData
 
 #: Q range of real satellite cameras (the paper); outside it the model lacks physics.
 PLAUSIBLE_Q = (0.5, 2.0)
@@ -84,9 +88,10 @@ def _erode(valid: np.ndarray, radius_px: int) -> np.ndarray:
 
 
 #: Reads a window of the grey UAV image: (row_px, col_px, height_px, width_px) relative
-#: to the calibrated region's north-west corner (may reach outside it) →
-#: (grey float (height, width), valid bool (height, width)); outside the data: invalid.
-GreyWindowReader = Callable[[int, int, int, int], tuple[np.ndarray, np.ndarray]]
+#: to the calibrated region's north-west corner (may reach outside it) → a
+#: :class:`~geosim.io.raster.RasterData` of one band (grey float ``(1, height, width)``,
+#: valid bool ``(height, width)``, the window's transform); outside the data: invalid.
+GreyWindowReader = Callable[[int, int, int, int], "RasterData"]
 
 
 @dataclass
@@ -247,8 +252,9 @@ def build_blocked_lv(read_window: GreyWindowReader, shape_sat: tuple[int, int], 
     for r0 in range(0, rows_s, block_sat_px):
         for c0 in range(0, cols_s, block_sat_px):
             h, w = min(block_sat_px, rows_s - r0), min(block_sat_px, cols_s - c0)
-            grey, valid = read_window((r0 - m) * phi, (c0 - m) * phi,
-                                      (h + 2 * m) * phi, (w + 2 * m) * phi)
+            window = read_window((r0 - m) * phi, (c0 - m) * phi,
+                                 (h + 2 * m) * phi, (w + 2 * m) * phi)
+            grey, valid = window.array[0], window.valid
             if progress is not None:
                 progress(1)
             if not np.any(valid[m * phi:(m + h) * phi, m * phi:(m + w) * phi]):

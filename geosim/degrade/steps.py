@@ -45,12 +45,14 @@ from geosim.engine import parallel_map
 from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
 from geosim.io.atomic import to_jsonable, write_json
 from geosim.io.raster import (
+    RasterData,
     acquisition_tags,
     image_band_indexes,
     open_raster,
     provenance_tags,
     read_raster,
     read_valid_mask,
+    read_window,
     write_geotiff,
 )
 from geosim.manifest import skip_text
@@ -81,23 +83,30 @@ LV_DEFINITION = (
 
 def _grey_reader(ds: rasterio.DatasetReader, bands: list[int], row0: int, col0: int,
                  dn_max: float | None) -> GreyWindowReader:
-    """Reader of grey windows relative to (row0, col0) of ``ds``; outside = invalid."""
+    """Reader of grey windows relative to (row0, col0) of ``ds``; outside = invalid.
 
-    def read(r: int, c: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-        grey = np.zeros((h, w), np.float32)
+    Each window comes back as a one-band :class:`RasterData` (``"grey"``) with the
+    window's transform (:data:`geosim.degrade.calibrate.GreyWindowReader`).
+    """
+
+    def read(r: int, c: int, h: int, w: int) -> RasterData:
+        grey = np.zeros((1, h, w), np.float32)
         valid = np.zeros((h, w), bool)
         rr, cc = row0 + r, col0 + c
         a0, b0 = max(rr, 0), max(cc, 0)
         a1, b1 = min(rr + h, ds.height), min(cc + w, ds.width)
+        out = RasterData(array=grey, valid=valid,
+                         transform=ds.window_transform(Window(cc, rr, w, h)), crs=ds.crs,
+                         band_names=("grey",), path=Path(ds.name))
         if a1 <= a0 or b1 <= b0:
-            return grey, valid
+            return out
         for s0 in range(a0, a1, _GREY_CHUNK_ROWS):
             s1 = min(s0 + _GREY_CHUNK_ROWS, a1)
             win = Window(b0, s0, b1 - b0, s1 - s0)
             data = ds.read(bands, window=win)
-            grey[s0 - rr:s1 - rr, b0 - cc:b1 - cc] = to_grey(data, dn_max=dn_max)
+            grey[0, s0 - rr:s1 - rr, b0 - cc:b1 - cc] = to_grey(data, dn_max=dn_max)
             valid[s0 - rr:s1 - rr, b0 - cc:b1 - cc] = read_valid_mask(ds, win)
-        return grey, valid
+        return out
 
     return read
 
@@ -158,9 +167,8 @@ def calibrate_flight(flight_id: str, flight_path: Path, sat: rasterio.DatasetRea
             return {**result, "status": "no_overlap",
                     "reason": "the flight does not overlap the satellite scene"}
         window = Window(c0, r0, c1 - c0, r1 - r0)
-        sat_bands = image_band_indexes(sat)
-        sat_grey = to_grey(sat.read(sat_bands, window=window))
-        sat_valid = read_valid_mask(sat, window)
+        sat_data = read_window(sat, window)
+        sat_grey, sat_valid = to_grey(sat_data.array), sat_data.valid
         bands = image_band_indexes(ds)
         dtype = ds.dtypes[bands[0] - 1]
         offset = quantization_lv(_quantization_step_grey(dtype), bands=len(bands))

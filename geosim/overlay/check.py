@@ -25,7 +25,7 @@ from rasterio.warp import Resampling, calculate_default_transform, reproject, tr
 from geosim.align.local import LocalShiftField, local_shift_field
 from geosim.align.phasecorr import MIN_WINDOW_PX
 from geosim.errors import AlignmentError, ExtentError
-from geosim.io.raster import image_band_indexes, open_raster, read_valid_mask
+from geosim.io.raster import RasterData, image_band_indexes, open_raster, read_valid_mask
 
 #: Largest side of the common grid in pixels (the check reads it whole); coarsen with gsd_m.
 MAX_GRID_PX = 8192
@@ -180,12 +180,18 @@ def common_grid(a: rasterio.DatasetReader, b: rasterio.DatasetReader, *,
     return CommonGrid(crs, Affine(g, 0.0, left, 0.0, -g, top), (rows, cols))
 
 
-def read_on_grid(ds: rasterio.DatasetReader, grid: CommonGrid) -> tuple[np.ndarray, np.ndarray]:
-    """Grey image (mean of the image bands, float32) and valid mask resampled onto ``grid``.
+def read_on_grid(ds: rasterio.DatasetReader, grid: CommonGrid) -> RasterData:
+    """Grey image (mean of the image bands) and valid mask resampled onto ``grid``.
 
     Pixels are averaged (area-weighted) from sources more than 1.5× finer than the grid and
     interpolated (cubic) otherwise; a grid pixel is valid only when every source pixel
     under it is valid.
+
+    Returns
+    -------
+    RasterData
+        One band ``"grey"``, ``(1, rows, cols)`` float32, with the grid's transform and
+        CRS (not the source's).
     """
     bands = image_band_indexes(ds)
     src_t, _, _ = calculate_default_transform(ds.crs, grid.crs, ds.width, ds.height, *ds.bounds)
@@ -205,7 +211,8 @@ def read_on_grid(ds: rasterio.DatasetReader, grid: CommonGrid) -> tuple[np.ndarr
               dst_transform=grid.transform, dst_crs=grid.crs, resampling=Resampling.min,
               dst_nodata=0)
     ok = (valid > 0) & np.isfinite(grey)
-    return grey, ok
+    return RasterData(array=grey[np.newaxis], valid=ok, transform=grid.transform,
+                      crs=grid.crs, band_names=("grey",), path=Path(ds.name))
 
 
 def auto_window_px(shape: tuple[int, int], window_px: int) -> int:
@@ -244,8 +251,8 @@ def overlay_check(a_path: str | os.PathLike[str], b_path: str | os.PathLike[str]
     with open_raster(a_path, what="overlay raster a") as a, \
             open_raster(b_path, what="overlay raster b") as b:
         grid = common_grid(a, b, gsd_m=gsd_m)
-        ga, va = read_on_grid(a, grid)
-        gb, vb = read_on_grid(b, grid)
+        on_a, on_b = read_on_grid(a, grid), read_on_grid(b, grid)
+    ga, va, gb, vb = on_a.array[0], on_a.valid, on_b.array[0], on_b.valid
     both = va & vb
     if both.mean() < 0.05:
         raise AlignmentError(f"{a_path} and {b_path}: less than 5 % of their common extent is "

@@ -64,8 +64,9 @@ def plot_pair(result: OverlayResult, path: Path, *, dpi: int = 120,
     from geosim.io.raster import open_raster
 
     with open_raster(result.b, what="overlay raster b") as ds:
-        grey, valid = read_on_grid(ds, result.grid)
-    t, (rows, cols) = result.grid.transform, result.grid.shape
+        on_grid = read_on_grid(ds, result.grid)
+    grey, valid = on_grid.array[0], on_grid.valid
+    t, (rows, cols) = on_grid.transform, on_grid.shape
     extent = (t.c, t.c + cols * t.a, t.f + rows * t.e, t.f)
     fig, ax = plt.subplots(figsize=(7, 7 * rows / cols + 0.6))
     ax.imshow(np.where(valid, grey, np.nan), cmap="gray", extent=extent, interpolation="nearest")

@@ -13,7 +13,7 @@ Method (all on the 0.5 m satellite grid, over the aligned window)
 1. **Area-average** the reference flight's grey level (BT.601 luma) to the
    satellite grid: each satellite pixel is the mean of its φ × φ UAV pixels,
    valid only when all of them are (:func:`area_average`), read window by window
-   (:func:`read_area_averaged`).
+   (:func:`read_averaged_window`).
 2. **Suppress what changes between dates**: pixels darker than
    :data:`DARK_FRACTION` × the median grey of each image are masked out
    (:func:`stable_mask`). Tree and fence shadows move with the sun and dominate
@@ -58,20 +58,18 @@ import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
-import rasterio
 from affine import Affine
 from rasterio.windows import Window
 
 from geosim.errors import AlignmentError, GeosimError
 from geosim.io.raster import (
     RasterData,
-    image_band_indexes,
     open_raster,
-    read_valid_mask,
     read_window,
 )
 from geosim.prepare.alignment import _3x3, correction_affine
@@ -416,8 +414,8 @@ def compose_entry(entry: Mapping[str, Any], anchor: Affine, grid_transform: Affi
 # --------------------------------------------------------------------------- I/O
 
 
-def read_area_averaged(path: str | os.PathLike[str], window: Window, phi: int, *,
-                       block_px: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+def read_averaged_window(path: str | os.PathLike[str], window: Window, phi: int, *,
+                         block_px: int = 2048) -> RasterData:
     """Grey level of a UAV-grid raster, area-averaged to the satellite grid, block by block.
 
     Parameters
@@ -425,7 +423,8 @@ def read_area_averaged(path: str | os.PathLike[str], window: Window, phi: int, *
     path
         A raster on the site UAV grid (e.g. ``grid/<flight>.tif``).
     window
-        UAV-grid window whose offsets and sizes are multiples of ``phi``.
+        UAV-grid window whose offsets and sizes are multiples of ``phi``; it may reach
+        outside the raster (those pixels are invalid).
     phi
         Satellite pixel size in UAV pixels.
     block_px
@@ -433,9 +432,11 @@ def read_area_averaged(path: str | os.PathLike[str], window: Window, phi: int, *
 
     Returns
     -------
-    (grey, valid)
-        ``(height / phi, width / phi)`` float32 BT.601 luma means and the mask
-        (:func:`area_average`); outside the raster counts as invalid.
+    RasterData
+        One band ``"grey"``: ``(1, height / phi, width / phi)`` float32 BT.601 luma means
+        of the first three image bands, the mask (:func:`area_average`: every UAV pixel
+        under a satellite pixel valid), the raster's CRS and the transform of the
+        averaged grid (the window's transform scaled by ``phi``).
     """
     from geosim.align.phasecorr import as_grey
 
@@ -446,22 +447,32 @@ def read_area_averaged(path: str | os.PathLike[str], window: Window, phi: int, *
     grey = np.zeros((rows, cols), np.float32)
     valid = np.zeros((rows, cols), bool)
     step = max(phi, (block_px // phi) * phi)
-    with rasterio.open(path) as ds:
-        bands = image_band_indexes(ds)[:3]
+    with open_raster(path, what="raster on the site UAV grid", require_crs=False) as ds:
         for r0 in range(0, int(window.height), step):
             for c0 in range(0, int(window.width), step):
                 h = min(step, int(window.height) - r0)
                 w = min(step, int(window.width) - c0)
-                win = Window(int(window.col_off) + c0, int(window.row_off) + r0, w, h)
-                inside = (win.col_off >= 0 and win.row_off >= 0
-                          and win.col_off + w <= ds.width and win.row_off + h <= ds.height)
-                img = ds.read(bands, window=win, boundless=not inside, fill_value=0)
-                v = (read_valid_mask(ds, window=win) if inside
-                     else ds.read_masks(1, window=win, boundless=True) > 0)
-                g, ok = area_average(as_grey(img), v, phi)
+                block = read_window(ds, Window(int(window.col_off) + c0,
+                                               int(window.row_off) + r0, w, h),
+                                    max_bands=3, boundless=True, path=path)
+                g, ok = area_average(as_grey(block.array), block.valid, phi)
                 grey[r0 // phi:(r0 + h) // phi, c0 // phi:(c0 + w) // phi] = g
                 valid[r0 // phi:(r0 + h) // phi, c0 // phi:(c0 + w) // phi] = ok
-    return grey, valid
+        transform = ds.window_transform(window) * Affine.scale(phi)
+        crs = ds.crs
+    return RasterData(array=grey[np.newaxis], valid=valid, transform=transform, crs=crs,
+                      band_names=("grey",), path=Path(path))
+
+
+def read_area_averaged(path: str | os.PathLike[str], window: Window, phi: int, *,
+                       block_px: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+    """``(grey, valid)`` of :func:`read_averaged_window`, without the georeference.
+
+    Kept only for ``geosim/prepare/steps.py`` (being rewritten elsewhere); new code uses
+    :func:`read_averaged_window`. Delete once that caller has moved.
+    """
+    data = read_averaged_window(path, window, phi, block_px=block_px)
+    return data.array[0], data.valid
 
 
 def read_satellite_window(path: str | os.PathLike[str], window: Window) -> RasterData:
@@ -473,5 +484,6 @@ def read_satellite_window(path: str | os.PathLike[str], window: Window) -> Raste
 
 __all__ = ["AnchorFit", "DARK_FRACTION", "HIGHPASS_SIGMA_PX", "METHOD", "anchor_affine",
            "area_average", "compose_entry", "highpass",
-           "prepare_for_satellite", "read_area_averaged", "read_satellite_window",
+           "prepare_for_satellite", "read_area_averaged", "read_averaged_window",
+           "read_satellite_window",
            "register_to_satellite", "stable_mask"]
