@@ -54,6 +54,7 @@ its pixels are φ times larger).
 
 from __future__ import annotations
 
+import functools
 from typing import Literal
 
 import cv2
@@ -199,16 +200,19 @@ def _dct_basis(n: int, index: np.ndarray, n_coef: int) -> np.ndarray:
     return basis
 
 
+@functools.lru_cache(maxsize=8)
 def _resample_basis(n: int, n_out: int, n_coef: int, phi: int) -> np.ndarray:
     """(n_out, n_coef) matrix: inverse DCT at the cubic taps of each output sample, weighted.
 
     The blurred axis has ``n`` samples; the resize reads its first ``n_out · phi``
     (as the reference crops before ``cv2.resize``), so the scale is exactly ``phi``.
+    Cached (read-only): the tiles of a run share their size.
     """
     index, weight = cv2_cubic_taps(n_out * phi, n_out)
     out = np.zeros((n_out, n_coef))
     for j in range(4):
         out += weight[:, j:j + 1] * _dct_basis(n, index[:, j], n_coef)
+    out.flags.writeable = False
     return out
 
 
@@ -350,8 +354,52 @@ ALIAS_TOLERANCE = 5e-4
 
 # Binomial kernels of the levels, centred between samples 1 and 2 (anchor 1 / 2): sampled at
 # even outputs they are the block-centre filters [1, 3, 3, 1]/8 and [1, 5, 10, 10, 5, 1]/32.
-_BINOMIAL_4_INT = np.array([1, 3, 3, 1], np.float32)  # times 8: exact in int16 from uint8
 _BINOMIAL_6 = np.array([1, 5, 10, 10, 5, 1], np.float32) / 32
+#: Output rows per strip of :func:`halve_binomial4_uint8` (its int16 temporaries stay in cache).
+_STRIP_ROWS = 64
+
+
+def _taps_1331(even: np.ndarray, odd: np.ndarray, first: np.ndarray, last: np.ndarray,
+               axis: int) -> np.ndarray:
+    """[1, 3, 3, 1] on the block centres along ``axis``: x[2j−1] + 3x[2j] + 3x[2j+1] + x[2j+2].
+
+    ``even`` / ``odd`` are x[2j] / x[2j+1]; ``first`` stands for x[−1] before the first
+    block and ``last`` for x[2n] after the last one (int16 sums, exact below 32768).
+    """
+    out = np.add(even, odd, dtype=np.int16)
+    out *= 3
+    head, tail = [slice(None)] * 2, [slice(None)] * 2
+    head[axis], tail[axis] = slice(1, None), slice(None, -1)
+    out[tuple(head)] += odd[tuple(tail)]
+    out[tuple(tail)] += even[tuple(head)]
+    head[axis], tail[axis] = 0, -1
+    out[tuple(head)] += first
+    out[tuple(tail)] += last
+    return out
+
+
+def halve_binomial4_uint8(band: np.ndarray) -> np.ndarray:
+    """One pyramid level of an even-sized uint8 band: [1, 3, 3, 1]/8 per axis, float32.
+
+    The filter is centred on each 2 × 2 block (``BORDER_REFLECT``: x[−1] = x[0],
+    x[N] = x[N−1]) and evaluated only there, so the result is
+    ``sepFilter2D(band, [1, 3, 3, 1], anchor 1)[::2, ::2] / 64`` without the three
+    quarters of the full-resolution filter that decimation throws away. Sums of 64
+    uint8 values are exact in int16; rows are done in strips that stay in cache.
+    """
+    rows, cols = band.shape
+    n_out = rows // 2
+    out = np.empty((n_out, cols // 2), np.float32)
+    for j0 in range(0, n_out, _STRIP_ROWS):
+        j1 = min(j0 + _STRIP_ROWS, n_out)
+        above = band[2 * j0 - 1] if j0 > 0 else band[0]
+        below = band[2 * j1] if j1 < n_out else band[rows - 1]
+        strip = _taps_1331(band[2 * j0:2 * j1:2], band[2 * j0 + 1:2 * j1:2], above, below,
+                           axis=0)
+        even, odd = strip[:, 0::2], strip[:, 1::2]
+        both = _taps_1331(even, odd, even[:, 0], odd[:, -1], axis=1)
+        np.multiply(both, np.float32(1.0 / 64.0), out=out[j0:j1])
+    return out
 
 
 def _level_power(data: np.ndarray, f_cut: float) -> int:
@@ -405,10 +453,7 @@ def reduce_band_limited(band: np.ndarray, q_phi: float
             break
         rows, cols = data.shape
         if power == 3:  # integer sums of 64 uint8 values: exact in int16
-            smooth = cv2.sepFilter2D(data, cv2.CV_16S, _BINOMIAL_4_INT, _BINOMIAL_4_INT,
-                                     anchor=(1, 1), borderType=cv2.BORDER_REFLECT)
-            halved = smooth[::2, ::2].astype(np.float32)
-            halved *= 1.0 / 64.0
+            halved = halve_binomial4_uint8(data)
         else:
             smooth = cv2.sepFilter2D(data.astype(np.float32, copy=False), cv2.CV_32F,
                                      _BINOMIAL_6, _BINOMIAL_6, anchor=(2, 2),
@@ -472,20 +517,19 @@ class SpectralDegrader:
         self._basis_cols = _resample_basis(cols, self.out_shape[1], self.n_coef[1], self.phi)
 
     def _truncated_dct(self, band: np.ndarray) -> np.ndarray:
-        rows, cols = self.shape
         k_r, k_c = self.n_coef
         reduced, gain_rows, gain_cols = reduce_band_limited(band, self.q_min * self.phi)
-        if reduced is not band:  # coefficients of the half-resolution pyramid level
-            coef = scipy.fft.dctn(reduced, type=2, norm="ortho", workers=self._workers)
-            return (coef[:k_r, :k_c] / np.outer(gain_rows[:k_r], gain_cols[:k_c])
-                    ).astype(np.float32)
-        partial = np.empty((rows, k_c), np.float32)
-        for r0 in range(0, rows, _ROW_BLOCK):
-            block = band[r0:r0 + _ROW_BLOCK].astype(np.float32)
+        # row transforms, then column transforms of the k_c kept columns only
+        partial = np.empty((reduced.shape[0], k_c), np.float32)
+        for r0 in range(0, reduced.shape[0], _ROW_BLOCK):
+            block = reduced[r0:r0 + _ROW_BLOCK].astype(np.float32, copy=False)
             partial[r0:r0 + _ROW_BLOCK] = scipy.fft.dct(
                 block, type=2, norm="ortho", axis=1, workers=self._workers)[:, :k_c]
-        return scipy.fft.dct(partial, type=2, norm="ortho", axis=0,
+        coef = scipy.fft.dct(partial, type=2, norm="ortho", axis=0,
                              workers=self._workers)[:k_r]
+        if reduced is not band:  # coefficients of a pyramid level: divide its gains out
+            coef /= np.outer(gain_rows[:k_r], gain_cols[:k_c]).astype(np.float32)
+        return coef
 
     @property
     def nbytes(self) -> int:

@@ -56,7 +56,8 @@ def copy_as_cog(src: str | os.PathLike[str], dst: str | os.PathLike[str], **opti
 
 @contextlib.contextmanager
 def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
-               internal_mask: bool = False) -> Iterator[rasterio.io.DatasetWriter]:
+               internal_mask: bool = False, cog_overrides: Mapping[str, Any] | None = None,
+               ) -> Iterator[rasterio.io.DatasetWriter]:
     """Open a scratch GeoTIFF for (windowed) writing; on success it becomes ``path`` as a COG.
 
     Parameters
@@ -68,6 +69,8 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
         rasterio creation profile of the scratch GeoTIFF (``driver`` must be GTiff).
     internal_mask
         Store the mask written with ``dst.write_mask`` as an internal mask band.
+    cog_overrides
+        COG creation options that replace those of :func:`cog_options` (e.g. ``LEVEL``).
     """
     with atomic_path(path) as tmp:
         scratch = tmp.with_name(tmp.name.replace(".part", ".scratch"))
@@ -79,7 +82,7 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
                                "predictor": 1}
             with env, rasterio.open(scratch, "w", **scratch_profile) as dst:
                 yield dst
-            copy_as_cog(scratch, tmp)
+            copy_as_cog(scratch, tmp, **dict(cog_overrides or {}))
         finally:
             for leftover in (scratch, scratch.with_name(scratch.name + ".aux.xml")):
                 with contextlib.suppress(FileNotFoundError):

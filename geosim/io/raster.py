@@ -275,6 +275,7 @@ def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, cou
                    nodata: float | None = None, band_descriptions: Sequence[str] | None = None,
                    tags: Mapping[str, str] | None = None, internal_mask: bool = False,
                    creation_options: Mapping[str, str] | None = None,
+                   cog_overrides: Mapping[str, Any] | None = None,
                    ) -> Iterator[rasterio.io.DatasetWriter]:
     """Open a GeoTIFF for windowed writing; on success it is renamed into place as a COG.
 
@@ -282,12 +283,14 @@ def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, cou
     GeoTIFF that :func:`geosim.io.cog.cog_writer` copies once into a Cloud-Optimized
     GeoTIFF with internal overviews (masks, tags and descriptions kept). ``internal_mask=True``
     adds a GDAL internal mask band (write it with ``dst.write_mask``).
-    ``creation_options`` are extra GTiff options (e.g. ``ZLEVEL``, ``NUM_THREADS``).
+    ``creation_options`` are extra GTiff options (e.g. ``ZLEVEL``, ``NUM_THREADS``) of the
+    scratch file; ``cog_overrides`` replace COG options of the final file (e.g. ``LEVEL``).
     """
     profile = geotiff_profile(width=width, height=height, count=count, dtype=dtype, crs=crs,
                               transform=transform, nodata=nodata)
     profile.update(creation_options or {})
-    with cog_writer(path, profile, internal_mask=internal_mask) as dst:
+    with cog_writer(path, profile, internal_mask=internal_mask,
+                    cog_overrides=cog_overrides) as dst:
         if band_descriptions is not None:
             for i, desc in enumerate(band_descriptions, start=1):
                 dst.set_band_description(i, desc)
@@ -299,7 +302,8 @@ def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, cou
 def write_geotiff(path: str | os.PathLike[str], array: np.ndarray, *, transform: Affine,
                   crs: CRS | str, nodata: float | None = None, mask: np.ndarray | None = None,
                   band_descriptions: Sequence[str] | None = None,
-                  tags: Mapping[str, str] | None = None) -> Path:
+                  tags: Mapping[str, str] | None = None,
+                  cog_overrides: Mapping[str, Any] | None = None) -> Path:
     """Write a whole array (bands, rows, cols) or (rows, cols) as a GeoTIFF, atomically.
 
     Parameters
@@ -312,6 +316,8 @@ def write_geotiff(path: str | os.PathLike[str], array: np.ndarray, *, transform:
         Nodata value written into the file; pixels where ``mask`` is False are set to it.
     mask
         Valid-data mask (True = valid), written as an internal mask band when given.
+    cog_overrides
+        COG creation options replacing geosim's defaults (:func:`geosim.io.cog.cog_options`).
     """
     arr = array[np.newaxis] if array.ndim == 2 else array
     if mask is not None and nodata is not None:
@@ -319,7 +325,7 @@ def write_geotiff(path: str | os.PathLike[str], array: np.ndarray, *, transform:
     with create_geotiff(path, width=arr.shape[2], height=arr.shape[1], count=arr.shape[0],
                         dtype=arr.dtype, crs=crs, transform=transform, nodata=nodata,
                         band_descriptions=band_descriptions, tags=tags,
-                        internal_mask=mask is not None) as dst:
+                        internal_mask=mask is not None, cog_overrides=cog_overrides) as dst:
         dst.write(arr)
         if mask is not None:
             dst.write_mask(mask.astype(np.uint8) * 255)
