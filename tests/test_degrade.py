@@ -104,6 +104,21 @@ def test_reduction_keeps_the_low_dct_coefficients(dtype, shape: tuple[int, int],
     assert abs(got[0, 0] - truth[0, 0]) < 1e-3 * abs(truth[0, 0])
 
 
+@pytest.mark.parametrize("shape", [(16, 16), (18, 30), (130, 258), (300, 202), (1024, 768)])
+def test_first_level_equals_opencv_filter_then_decimation(shape: tuple[int, int]) -> None:
+    # truth: OpenCV's full-resolution separable filter [1, 3, 3, 1] (anchor 1, reflected
+    # border), kept at every other row and column; the level evaluates only those, in
+    # strips of rows (shapes above span several strips and a partial last one)
+    kernel = np.array([1, 3, 3, 1], np.float32)
+    rng = np.random.default_rng(11)
+    for band in (rng.integers(0, 256, shape, dtype=np.uint8), np.full(shape, 255, np.uint8)):
+        full = cv2.sepFilter2D(band.astype(np.float64), cv2.CV_64F, kernel, kernel,
+                               anchor=(1, 1), borderType=cv2.BORDER_REFLECT)
+        got = core.halve_binomial4_uint8(band)
+        assert got.dtype == np.float32 and got.shape == (shape[0] // 2, shape[1] // 2)
+        np.testing.assert_array_equal(got, full[::2, ::2] / 64)
+
+
 def test_reference_is_the_paper_operation() -> None:
     """method="reference" = blur then cv2.resize(INTER_CUBIC), literally."""
     image = textured_rgb(200, 230, seed=2)
@@ -240,6 +255,12 @@ def test_degraded_tiles_have_exact_transforms_masks_and_tags(tmp_path: Path) -> 
             assert json.loads(tags["GEOSIM_SOURCES"]) == [f"tiles/PA1/{tid}.tif"]
             mask = dst.dataset_mask() > 0
             src_valid = src.dataset_mask() > 0
+            # a lossless COG holding exactly the kernel's rounded output
+            assert dst.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+            assert dst.compression.name == "deflate"
+            fast, _ = core.degrade_array(src.read(), q=2.5, phi=10, valid=src_valid)
+            np.testing.assert_array_equal(dst.read()[:, mask],
+                                          core.to_dtype(fast, np.uint8)[:, mask])
         expected = src_valid.reshape(50, 10, 50, 10).all(axis=(1, 3))
         np.testing.assert_array_equal(mask, expected)
     with rasterio.open(out / "degraded" / "PA1" / "r000_c000.tif") as dst:
