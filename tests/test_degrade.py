@@ -19,8 +19,9 @@ from rasterio.windows import from_bounds
 from geosim.cli.main import cli
 from geosim.config import FlightConfig, Parameters, SatelliteConfig, SiteConfig
 from geosim.degrade import core
-from geosim.degrade.steps import degraded_transform, run_degrade
+from geosim.degrade.steps import degrade_tile, degraded_transform, run_degrade
 from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
+from geosim.io.raster import write_geotiff
 from geosim.physics import psf
 from tests.helpers import textured_rgb, write_raster
 
@@ -266,6 +267,25 @@ def test_degraded_tiles_have_exact_transforms_masks_and_tags(tmp_path: Path) -> 
     with rasterio.open(out / "degraded" / "PA1" / "r000_c000.tif") as dst:
         m = dst.dataset_mask() > 0
     assert not m[:9, :14].any() and m[10:, 14:].all()  # 95 × 140 px hole → 9.5 × 14 pixels
+
+
+def test_internal_mask_of_a_tile_reaches_the_degraded_tile(tmp_path: Path) -> None:
+    # a tile as `geosim tile` writes it: a COG with an internal (1-bit) mask
+    image = textured_rgb(300, 400, seed=9)
+    valid = np.ones((300, 400), bool)
+    valid[:37, :122] = False
+    valid[205, 318] = False
+    src = write_geotiff(tmp_path / "tile.tif", image, transform=UAV_TF, crs="EPSG:28356",
+                        mask=valid)
+    degrade_tile(src, tmp_path / "out.tif", q=2.0, phi=10)
+    with rasterio.open(tmp_path / "out.tif") as dst:
+        mask = dst.dataset_mask() > 0
+        pixels = dst.read()
+    expected = core.block_all(valid, 10)
+    assert not expected.all() and expected.sum() == 30 * 40 - 4 * 13 - 1
+    np.testing.assert_array_equal(mask, expected)
+    fast, _ = core.degrade_array(image, q=2.0, phi=10, valid=valid)
+    np.testing.assert_array_equal(pixels[:, mask], core.to_dtype(fast, np.uint8)[:, mask])
 
 
 def test_degraded_tile_overlays_the_satellite_scene(tmp_path: Path) -> None:

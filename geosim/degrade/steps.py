@@ -384,8 +384,11 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
     from geosim.prepare.reproject import warp_threads
 
     src, dst = Path(src), Path(dst)
-    # decode the compressed tile blocks (image and mask) on every core of this worker
-    with rasterio.Env(GDAL_NUM_THREADS=str(warp_threads())):
+    # decode the compressed tile blocks (image and mask) on every core of this worker; the
+    # internal 1-bit mask is read as 0/1, without GDAL's pass scaling it to 0/255 (only
+    # "non-zero = valid" is used): 0.026 → 0.016 s CPU for a 5000² mask
+    with rasterio.Env(GDAL_NUM_THREADS=str(warp_threads()),
+                      GDAL_TIFF_INTERNAL_MASK_TO_8BIT=False):
         tile = read_raster(src, what="UAV tile")
     rows, cols = tile.shape
     if uav_gsd_m is not None and not math.isclose(abs(tile.transform.a), uav_gsd_m,
