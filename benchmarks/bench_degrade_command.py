@@ -118,6 +118,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         setup(root, args.size, args.tiles)
+        load_start = [round(x, 2) for x in os.getloadavg()]
         rows = {}
         for task in ("command", "reference"):
             proc = subprocess.run([sys.executable, __file__, "--child", task, "--root", str(root)],
@@ -131,6 +132,7 @@ def main() -> None:
     doc = {"benchmark": "bench_degrade_command", "tile_px": args.size, "q": Q,
            "tiles_in_command": args.tiles,
            "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
+                       "load_average_at_start": load_start,
                        "load_average_at_end": [round(x, 2) for x in os.getloadavg()]},
            "command": {**rows["command"],
                        "mp_per_s": round(mp / rows["command"]["seconds_per_tile"], 2)},
