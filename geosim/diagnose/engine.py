@@ -607,6 +607,7 @@ def _summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Spectr
         "candidates_heldout_gain": {k: float(v) for k, v in sel.cv_gain.items()},
         "candidates_at_bound": sorted(sel.at_bound),
         "candidates_too_small": sorted(sel.too_small),
+        "candidates_implausible": sorted(sel.implausible),
         "coregistration": {"shift_px": list(reg.estimate.shift_px),
                            "sigma_px": list(reg.estimate.sigma_px),
                            "delta_bic": float(reg.estimate.delta_bic),

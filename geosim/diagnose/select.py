@@ -38,7 +38,7 @@ from geosim.diagnose.fit import (
 
 __all__ = ["BlurSelection", "Alternative", "AcceptedEffect", "select_blur", "delta_bic",
            "select_radiometry", "cv_chi2", "MIN_DELTA_BIC", "MIN_CV_GAIN", "AMBIGUITY_CV",
-           "EFFECT_SIZE", "BLUR_FAMILY"]
+           "EFFECT_SIZE", "EFFECT_MAX", "BLUR_FAMILY"]
 
 MIN_DELTA_BIC = 10.0
 #: smallest radiometric correction worth claiming: RMS change of the image in some band, DN
@@ -60,6 +60,14 @@ EFFECT_SIZE: dict[str, tuple[str, str, float]] = {
     # the σ of a 0.8 px box (0.8/√12): the same size limit as the smear's
     "off_nadir_anisotropy": ("sigma_px", ">=", 0.23),
     "resampling": ("native_pitch_px", ">=", 1.15),
+}
+#: (parameter, largest physically plausible value): beyond it the effect stands in for
+#: another. A detector integrates over its own element, which cannot be wider than the
+#: native sampling pitch; an aperture wider than two product pixels means the product grid
+#: is finer than the native sampling, i.e. ``resampling`` (whose signature, the roll-off
+#: above the native Nyquist, such a wide sinc imitates)
+EFFECT_MAX: dict[str, tuple[str, float]] = {
+    "detector_integration": ("pitch_px", 2.0),
 }
 #: blur families: effects one measured transfer function cannot tell apart reliably
 BLUR_FAMILY: dict[str, str] = {
@@ -107,6 +115,7 @@ class BlurSelection:
     cv_gain: dict[str, float] = field(default_factory=dict)  # last CV gain of each candidate
     at_bound: set[str] = field(default_factory=set)          # fits pinned at a bound
     too_small: set[str] = field(default_factory=set)         # fits too close to the null
+    implausible: set[str] = field(default_factory=set)       # fits beyond EFFECT_MAX
 
 
 def _at_bound(name: str, params: dict[str, float], rel: float = 0.01) -> bool:
@@ -127,6 +136,12 @@ def clearly_present(name: str, params: dict[str, float]) -> bool:
         return True
     key, op, limit = rule
     return params[key] >= limit if op == ">=" else params[key] <= limit
+
+
+def plausible(name: str, params: dict[str, float]) -> bool:
+    """The fitted parameter is within the effect's physical range (:data:`EFFECT_MAX`)."""
+    rule = EFFECT_MAX.get(name)
+    return rule is None or rule[0] not in params or params[rule[0]] <= rule[1]
 
 
 Folds = Sequence[tuple[SpectralData, SpectralData]]
@@ -183,6 +198,8 @@ def select_blur(full: SpectralData, folds: Folds | None = None, *,
                 sel.at_bound.add(c)
             elif not clearly_present(c, f.effects.get(c, {})):
                 sel.too_small.add(c)
+            elif not plausible(c, f.effects.get(c, {})):
+                sel.implausible.add(c)
             elif dbics[c] >= min_delta_bic:
                 ok[c] = f
         if not ok:
