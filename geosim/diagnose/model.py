@@ -145,32 +145,42 @@ class ForwardModel:
     radiometry: RadiometryChoice | None = None
     noise: NoiseEstimate | None = None
 
-    def sim_at(self, simulate: Callable[[float], np.ndarray], q: float | None = None
-               ) -> np.ndarray:
-        """Paper's model at ``q`` (default: the model's), moved and compressed."""
+    def sim_at(self, simulate: Callable[[float], np.ndarray], q: float | None = None, *,
+               compressed: bool = True) -> np.ndarray:
+        """Paper's model at ``q`` (default: the model's), moved and (unless ``compressed``
+        is False) compressed."""
         s = self.registration.move(simulate(self.q if q is None else q))
-        return self.compression.apply(s) if self.compression is not None else s
+        if compressed and self.compression is not None:
+            return self.compression.apply(s)
+        return s
 
     def blurred(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
-        """With the blur effects and the seam correction (no radiometry)."""
-        m = blur_apply(self.sim_at(simulate), self.blur)
+        """With the blur effects and the seam correction (no radiometry, no compression)."""
+        m = blur_apply(self.sim_at(simulate, compressed=False), self.blur)
         if self.seam is not None:
             m = m * np.where(self.seam.side, self.seam.factor, 1.0)
         return m
 
-    def deterministic(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
-        """The expected refined image (no noise realisation)."""
+    def _before_compression(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
         m = self.blurred(simulate)
         return self.radiometry.apply(m) if self.radiometry is not None else m
 
+    def deterministic(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
+        """The expected refined image (no noise realisation). Compression acts last, on
+        the product as delivered (after blur, sampling and radiometry), as in a camera."""
+        m = self._before_compression(simulate)
+        return self.compression.apply(m) if self.compression is not None else m
+
     def delivered(self, simulate: Callable[[float], np.ndarray], rng: np.random.Generator,
                   *, quantized: bool) -> np.ndarray:
-        """As the product is delivered: with a noise realisation, whole DN if quantized."""
-        m = self.deterministic(simulate)
+        """As the product is delivered: with a noise realisation, whole DN if quantized,
+        then compressed (JPEG encodes the noisy, quantized product)."""
+        m = self._before_compression(simulate)
         if self.noise is not None and self.noise.claimed:
             m = get_effect("sensor_noise").apply(m, rng=rng, gain_dn=self.noise.gain_dn,
                                                  read_var_dn2=self.noise.read_var_dn2)
-        return np.round(m) if quantized else m
+        m = np.round(m) if quantized else m
+        return self.compression.apply(m) if self.compression is not None else m
 
     def without(self, **changes: Any) -> ForwardModel:
         return replace(self, **changes)
