@@ -37,8 +37,9 @@ from geosim.diagnose.fit import (
 )
 
 __all__ = ["BlurSelection", "Alternative", "AcceptedEffect", "select_blur", "delta_bic",
-           "select_radiometry", "cv_chi2", "MIN_DELTA_BIC", "MIN_CV_GAIN", "AMBIGUITY_CV",
-           "EFFECT_SIZE", "EFFECT_MAX", "BLUR_FAMILY"]
+           "select_radiometry", "cv_chi2", "at_bound", "clearly_present", "plausible",
+           "MIN_DELTA_BIC", "MIN_CV_GAIN", "AMBIGUITY_CV", "EFFECT_SIZE", "EFFECT_MAX",
+           "BLUR_FAMILY"]
 
 MIN_DELTA_BIC = 10.0
 #: smallest radiometric correction worth claiming: RMS change of the image in some band, DN
@@ -118,7 +119,7 @@ class BlurSelection:
     implausible: set[str] = field(default_factory=set)       # fits beyond EFFECT_MAX
 
 
-def _at_bound(name: str, params: dict[str, float], rel: float = 0.01) -> bool:
+def at_bound(name: str, params: dict[str, float], rel: float = 0.01) -> bool:
     for spec in get_effect(name).params:
         if spec.periodic or spec.name not in params:
             continue
@@ -194,7 +195,7 @@ def select_blur(full: SpectralData, folds: Folds | None = None, *,
         for c, f in fits.items():
             # a parameter pinned at a bound means the effect is standing in for a shape it
             # does not have; one at its null is no effect: never claim either by name
-            if _at_bound(c, f.effects.get(c, {})):
+            if at_bound(c, f.effects.get(c, {})):
                 sel.at_bound.add(c)
             elif not clearly_present(c, f.effects.get(c, {})):
                 sel.too_small.add(c)
