@@ -413,17 +413,31 @@ def _aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: 
 
 
 def _never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
-                 se_of: Callable[[np.ndarray], float], rng_seed: int
+                 se_of: Callable[[np.ndarray], float], rng_seed: int,
+                 se_whole: Callable[[np.ndarray], float] | None = None
                  ) -> tuple[ForwardModel, list[dict[str, str]]]:
     """Fall back to fewer effects until the delivered refined simulation fits at least as
     well as the baseline (spectral error): first without noise, then without the blur
-    effects from the last chosen, finally the baseline Q alone."""
-    base_se = se_of(np.round(inp.base) if inp.quantized else inp.base)
+    effects from the last chosen, finally the baseline Q alone.
+
+    "At least as well" holds on the blocks outside the changed regions (``se_of``) and,
+    when ``se_whole`` is given, also over the whole valid extent: the refined simulation
+    is delivered whole, changed areas included."""
+    base = np.round(inp.base) if inp.quantized else inp.base
+    base_se = se_of(base)
+    base_whole = se_whole(base) if se_whole is not None else 0.0
     withdrawn: list[dict[str, str]] = []
 
+    def delivered(m: ForwardModel) -> np.ndarray:
+        return m.delivered(inp.simulate, np.random.default_rng(rng_seed),
+                           quantized=inp.quantized)
+
     def se(m: ForwardModel) -> float:
-        return se_of(m.delivered(inp.simulate, np.random.default_rng(rng_seed),
-                                 quantized=inp.quantized))
+        return se_of(delivered(m))
+
+    def ok(m: ForwardModel) -> bool:
+        img = delivered(m)
+        return se_of(img) <= base_se and (se_whole is None or se_whole(img) <= base_whole)
 
     if model.noise is not None and model.noise.claimed:
         # noise is claimed only where adding it really brings the spectra together
@@ -432,12 +446,12 @@ def _never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
             model = quiet
             withdrawn.append({"name": "sensor_noise",
                               "reason": "adding it does not improve the spectral fit"})
-    if se(model) <= base_se:
+    if ok(model):
         return model, withdrawn
     if model.noise is not None and model.noise.claimed:
         model = model.without(noise=None)
         withdrawn.append({"name": "sensor_noise", "reason": "refined fit worse with it"})
-        if se(model) <= base_se:
+        if ok(model):
             return model, withdrawn
     names = list(model.blur)
     while names:
@@ -445,11 +459,11 @@ def _never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
         q, eff = _refit_without(sel, setup, names, inp.q_base)
         model = model.without(q=q, blur=eff)
         withdrawn.append({"name": gone, "reason": "refined fit worse with it"})
-        if se(model) <= base_se:
+        if ok(model):
             return model, withdrawn
     model = model.without(q=inp.q_base)
     withdrawn.append({"name": "refitted_q", "reason": "refined fit worse than the LV Q"})
-    if se(model) <= base_se:
+    if ok(model):
         return model, withdrawn
     # last resort: the baseline itself (e.g. a shift field whose interpolation smooths)
     reg = model.registration
@@ -527,7 +541,14 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     noise_seed = int(rng.integers(0, 2**31 - 1))
     model = _aliasing_test(inp, model, sel, setup, se_of, noise_seed, blur_candidates)
     found = model
-    model, withdrawn = _never_worse(inp, model, sel, setup, se_of, noise_seed)
+    all_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=inp.valid)
+
+    def se_whole(img: np.ndarray) -> float:
+        return spectral_error(_grey(img), inp.grey, block_px=setup.block_px,
+                              origins=all_origins)
+
+    model, withdrawn = _never_worse(inp, model, sel, setup, se_of, noise_seed,
+                                    se_whole if len(all_origins) >= 4 else None)
     refined = model.delivered(simulate, np.random.default_rng(noise_seed),
                               quantized=inp.quantized)
     claims = _claims(inp, model.without(registration=reg, compression=found.compression,
