@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from geosim.diagnose import locate
-from geosim.diagnose.coregister import estimate_affine, estimate_shift
+from geosim.diagnose.coregister import AffineEstimate, estimate_affine, estimate_shift
 from geosim.diagnose.effects import BLUR_EFFECTS
 from geosim.diagnose.fit import (
     SpectralData,
@@ -215,7 +215,7 @@ def _coregister(inp: Inputs) -> Registration:
         corners = np.array([[0, 0], [cols, 0], [0, rows], [cols, rows]], float) - \
             np.array(aff.centre_px)
         linear_px = float(np.max(np.hypot(*(aff.matrix @ corners.T))))
-        if linear_px >= MIN_FIELD_PX:
+        if linear_px >= max(MIN_FIELD_PX, 3.0 * _field_sigma_px(aff, corners)):
             dcol, drow = aff.field((rows, cols))
             field_px = (dcol + whole[0], drow + whole[1])
             applied = True
@@ -228,6 +228,17 @@ def _coregister(inp: Inputs) -> Registration:
     return Registration(estimate=est, affine=aff, applied=applied,
                         shift_px=est.shift_px if applied else (0.0, 0.0), whole_px=whole,
                         field_px=field_px, fill_idx=fill_idx)
+
+
+def _field_sigma_px(aff: AffineEstimate, corners: np.ndarray) -> float:
+    """1-σ of the field's displacement at the farthest corner from its linear part: the
+    local shifts scatter by ``residual_px``; the 16-px blocks overlap by half in both axes,
+    so about a quarter of them are independent."""
+    pos = aff.local[:, :2] - np.asarray(aff.centre_px)
+    n_eff = max(aff.n_blocks / 4.0, 1.0)
+    var_x = max(float(np.mean(pos**2)), 1e-9)
+    r_max = float(np.max(np.hypot(corners[:, 0], corners[:, 1])))
+    return float(aff.residual_px * r_max / np.sqrt(n_eff * var_x))
 
 
 def _band_affine(model: np.ndarray, real: np.ndarray, mask: np.ndarray) -> np.ndarray:
