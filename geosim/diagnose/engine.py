@@ -250,11 +250,16 @@ def _band_affine(model: np.ndarray, real: np.ndarray, mask: np.ndarray) -> np.nd
     return out
 
 
-def _find_compression(inp: Inputs, reg: Registration) -> CompressionFit | None:
+def _find_compression(inp: Inputs, reg: Registration, model_img: np.ndarray | None = None
+                      ) -> CompressionFit | None:
     """8×8 block steps in the baseline residual; the quality whose re-encoding gives the
     model as many block-edge steps as the real scene has (moment matching: robust to the
-    blur misfit that dominates a residual-based criterion before the blur is fitted)."""
-    base_aff = _band_affine(reg.move(inp.base), inp.real, inp.valid)
+    blur misfit that dominates a residual-based criterion before the blur is fitted).
+
+    ``model_img``: test against this (refined, uncompressed) model instead of the baseline
+    — a blur misfit of the baseline can drown the block steps."""
+    ref = reg.move(inp.base) if model_img is None else model_img
+    base_aff = _band_affine(ref, inp.real, inp.valid)
     blk = blockiness(_grey(inp.real - base_aff), inp.valid)
     if not (min(blk["row_ratio"], blk["col_ratio"]) > MIN_BLOCK_RATIO
             and min(blk["row_z"], blk["col_z"]) > MIN_BLOCK_Z):
@@ -286,19 +291,22 @@ def _affine_residual(model_g: np.ndarray, real_g: np.ndarray, mask: np.ndarray) 
 
 
 def _changed_regions(inp: Inputs, model_grey: np.ndarray, *, ratio: float,
-                     floor_dn2: float = MIN_REGION_DN2, affine: bool = True
+                     floor_dn2: float = MIN_REGION_DN2, affine: bool = True,
+                     extra_dn2: np.ndarray | float = 0.0
                      ) -> tuple[list[locate.Region], np.ndarray, np.ndarray, np.ndarray]:
     """Regions of significant residual energy: (regions, labels, energy map, inner mask).
 
     ``affine``: match the model's grey level to the scene first (the first pass, before
     the radiometry is fitted); the final pass uses the refined model's residual as it is,
     so that large areas the radiometry does not explain show up as ``global`` regions.
+    ``extra_dn2``: residual energy expected on top of the scene-wide level (a map, e.g. the
+    compression error, which concentrates in textured blocks).
     """
     e = (_affine_residual(model_grey, inp.grey, inp.valid) if affine
          else inp.grey - model_grey)
     inner = ndimage.binary_erosion(inp.valid, np.ones((5, 5)), border_value=0)
     energy = locate.residual_energy_map(np.where(inner, e, 0))
-    expected = max(float(np.median(energy[inner])), floor_dn2)
+    expected = max(float(np.median(energy[inner])), floor_dn2) + extra_dn2
     regions, labels = locate.find_regions(energy, valid=inner, expected_dn2=expected,
                                           ratio_threshold=ratio)
     return regions, labels, energy, inner
@@ -580,15 +588,27 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
                       q_starts=(float(np.clip(q_base, q_lo, q_hi)), 1.5))
     model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
     model = _fit_radiometry(inp, model, fit_mask)
+    if model.compression is None:
+        # second look, against the refined model: the baseline's blur misfit can hide the
+        # block steps (they stand out once the blur is modelled)
+        model = model.without(compression=_find_compression(
+            inp, reg, model_img=model.deterministic(simulate)))
     model = model.without(noise=estimate_noise(
         inp.real, model.deterministic(simulate), fit_mask, origins=setup.origins,
         block_px=setup.block_px, quantized=inp.quantized,
         compressed=model.compression is not None))
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
+    det = model.deterministic(simulate)
+    jpeg_dn2: np.ndarray | float = 0.0
+    if model.compression is not None:
+        # the real scene's JPEG error and the model's are independent where the pixels
+        # differ (noise, texture): their residual carries both, ≈ twice the model's own
+        jpeg_dn2 = 2.0 * locate.residual_energy_map(
+            _grey(det - model.without(compression=None).deterministic(simulate)))
     regions, labels, energy, inner = _changed_regions(
-        inp, _grey(model.deterministic(simulate)), ratio=6.0,
-        floor_dn2=max(MIN_REGION_DN2, 0.447 * noise_var), affine=False)
+        inp, _grey(det), ratio=6.0, floor_dn2=max(MIN_REGION_DN2, 0.447 * noise_var),
+        affine=False, extra_dn2=jpeg_dn2)
     eval_mask = inner & ~locate.regions_mask(labels, regions, kind=None)
     ev_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=eval_mask)
     if len(ev_origins) < 4:
