@@ -7,6 +7,13 @@ overviews before full resolution) and keeps tags, band descriptions, colour
 interpretation, nodata and the internal mask. The copy is lossless (deflate), so
 the decoded full-resolution pixels are exactly those written.
 
+Cost (CPU, one 5000 x 5000 RGB tile with its mask; benchmarks/bench_cog_write.py): the
+copy's deflate at GDAL's default level 6 was the largest part, so geosim writes
+deflate level :data:`DEFLATE_LEVEL` (same decoded pixels, an 8 % larger file),
+and a scratch file small enough is written uncompressed (it is read once, right away).
+GDAL compresses with one thread (``NUM_THREADS=1``): geosim runs one single-threaded
+task per core (docs/scale.md), so more threads would only compete for the same cores.
+
 References
 ----------
 GDAL COG driver: https://gdal.org/drivers/raster/cog.html
@@ -20,6 +27,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import rasterio
 import rasterio.shutil
 
@@ -27,6 +35,16 @@ from geosim.io.atomic import atomic_path
 
 #: Internal tile size (pixels) of every COG geosim writes; overviews are built down to it.
 COG_BLOCK_PX = 256
+
+#: libdeflate level of every COG geosim writes (GDAL's default is 6, which cost about
+#: twice the CPU of the whole write at level 1 on a 5000 px tile, for a file 8 %
+#: smaller; any level decodes with any DEFLATE reader; degraded tiles already used 1).
+DEFLATE_LEVEL = 1
+
+#: Scratch GeoTIFFs up to this many bytes of raw pixels are written uncompressed (a 5000 px
+#: RGB tile is 75 MB); larger ones (whole orthomosaics) with ZSTD level 1 to bound the
+#: scratch disk.
+SCRATCH_RAW_MAX_BYTES = 256 * 2**20
 
 
 def cog_options(*, blocksize_px: int = COG_BLOCK_PX, resampling: str = "average"
@@ -40,7 +58,8 @@ def cog_options(*, blocksize_px: int = COG_BLOCK_PX, resampling: str = "average"
     resampling
         Overview resampling (``average`` keeps grey levels of imagery and masks honest).
     """
-    return {"COMPRESS": "DEFLATE", "PREDICTOR": "YES", "BLOCKSIZE": int(blocksize_px),
+    return {"COMPRESS": "DEFLATE", "LEVEL": DEFLATE_LEVEL, "PREDICTOR": "YES",
+            "BLOCKSIZE": int(blocksize_px),
             "OVERVIEWS": "AUTO", "OVERVIEW_RESAMPLING": resampling.upper(),
             "BIGTIFF": "IF_SAFER", "NUM_THREADS": "1"}
 
@@ -77,9 +96,7 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
         try:
             env = (rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True) if internal_mask
                    else contextlib.nullcontext())
-            # the scratch copy is read once: fast compression, final compression in the COG
-            scratch_profile = {**dict(profile), "compress": "zstd", "zstd_level": 1,
-                               "predictor": 1}
+            scratch_profile = {**dict(profile), **scratch_options(profile)}
             with env, rasterio.open(scratch, "w", **scratch_profile) as dst:
                 yield dst
             copy_as_cog(scratch, tmp, **dict(cog_overrides or {}))
@@ -88,3 +105,16 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
                 with contextlib.suppress(FileNotFoundError):
                     leftover.unlink()
 
+
+
+def scratch_options(profile: Mapping[str, Any]) -> dict[str, Any]:
+    """Compression of the scratch GeoTIFF, which is read once right after being written.
+
+    Uncompressed up to :data:`SCRATCH_RAW_MAX_BYTES` of raw pixels (no encode, no decode),
+    ZSTD level 1 above (bounded scratch disk); the final compression is the COG copy's.
+    """
+    itemsize = np.dtype(profile["dtype"]).itemsize
+    raw_bytes = int(profile["width"]) * int(profile["height"]) * int(profile["count"]) * itemsize
+    if raw_bytes <= SCRATCH_RAW_MAX_BYTES:
+        return {"compress": "none", "predictor": 1}
+    return {"compress": "zstd", "zstd_level": 1, "predictor": 1}
