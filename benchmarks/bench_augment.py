@@ -25,10 +25,12 @@ CPU per pair.
 Before / after in the same run: ``--baseline-rev REV`` exports that git revision
 of geosim (``git archive``) to a temporary folder and times its shipped pipeline,
 one thread, on the same pairs and seeds in a subprocess, alternating with this
-tree's, so both see the same machine load.
+tree's, so both see the same machine load. With ``--end-to-end`` the same comparison
+times the whole command instead (``run_augment`` on a run folder of one 5000² pair: read
+the GeoTIFF tiles, augment, write the GeoTIFF outputs, YOLO labels and CSVs), and only that.
 
 Writes benchmarks/results/bench_augment.json and prints a markdown table.
-Usage: ``python benchmarks/bench_augment.py [--quick] [--baseline-rev main]``.
+Usage: ``python benchmarks/bench_augment.py [--quick] [--baseline-rev main [--end-to-end]]``.
 """
 
 from __future__ import annotations
@@ -122,7 +124,7 @@ assert geosim.augment.__file__.startswith({src!r}), geosim.augment.__file__
 spec = importlib.util.spec_from_file_location("bench_augment_here", {bench!r})
 bench = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(bench)
-print(json.dumps(bench.shipped_one_thread({size}, {n}, {first})))
+print(json.dumps(bench.{func}({size}, {n}, {first})))
 """
 
 
@@ -136,9 +138,10 @@ def _export_revision(rev: str, dest: Path) -> str:
     return commit
 
 
-def _baseline_one_thread(src: Path, size: int, n: int, first_seed: int) -> dict:
+def _baseline_one_thread(src: Path, size: int, n: int, first_seed: int,
+                         func: str = "shipped_one_thread") -> dict:
     code = _BASELINE_SCRIPT.format(src=str(src), bench=str(Path(__file__).resolve()), size=size,
-                                   n=n, first=first_seed)
+                                   n=n, first=first_seed, func=func)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     done = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                           text=True, env=env, cwd=src)
@@ -149,7 +152,24 @@ def _all_applied(p: Pipeline) -> Pipeline:
     return replace(p, steps=tuple(replace(s, probability=1.0) for s in p.steps))
 
 
-def _end_to_end(size: int, n: int, a: AugImage, b: AugImage) -> dict:
+def end_to_end_one_thread(size: int, n: int, first_seed: int = 0) -> dict:
+    """The whole command (``run_augment``, GeoTIFF in/out) with whatever geosim is importable.
+
+    One pair, ``n`` outputs, seed ``first_seed``; OpenCV at one thread as on a worker.
+    """
+    a, b = _pair(size)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        load = os.getloadavg()[0]
+        r = _end_to_end(size, n, a, b, seed=first_seed + 1)
+    finally:
+        cv2.setNumThreads(before)
+    return {**r, "cpu_pairs_per_second": round(1 / r["cpu_seconds_per_pair"], 3),
+            "load_average": round(load, 2)}
+
+
+def _end_to_end(size: int, n: int, a: AugImage, b: AugImage, seed: int = 1) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp) / "run"
         gsd = 0.05 if size >= 5000 else 0.05 * 5000 / size
@@ -170,23 +190,27 @@ def _end_to_end(size: int, n: int, a: AugImage, b: AugImage) -> dict:
                         "tiles/PA2/r000_c000.tif", 0, 0, 1, 1, "EPSG:32756"])
         t0, c0 = time.perf_counter(), time.process_time()
         s = run_augment(d / "pairs.csv", load_pipeline(), n=n, out_dir=Path(tmp) / "aug",
-                        seed=1)
+                        seed=seed)
         dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     return {"pairs": n, "seconds": round(dt, 3), "pairs_per_second": round(n / dt, 3),
             "seconds_per_pair": round(dt / n, 4), "cpu_seconds_per_pair": round(cpu / n, 4),
             "boxes_out": s["boxes_out"]}
 
 
-def _baseline_and_current(rev: str, n: int) -> dict:
-    """Shipped 5000 px, one thread: baseline revision and this tree, alternating (same load)."""
-    out: dict = {"revision": rev, "runs": []}
+def _baseline_and_current(rev: str, n: int, func: str = "shipped_one_thread") -> dict:
+    """Shipped 5000 px, one thread: baseline revision and this tree, alternating (same load).
+
+    ``func``: ``shipped_one_thread`` (the pipeline alone) or ``end_to_end_one_thread``.
+    """
+    here = globals()[func]
+    out: dict = {"revision": rev, "case": func, "runs": []}
     with tempfile.TemporaryDirectory() as tmp:
         out["commit"] = _export_revision(rev, Path(tmp))
         half = max(1, n // 2)
         for rnd in range(2):  # seeds 0..half-1, then half..2·half-1: both codes, same pairs
             for which in ("baseline", "this tree"):
-                r = (_baseline_one_thread(Path(tmp), 5000, half, rnd * half)
-                     if which == "baseline" else shipped_one_thread(5000, half, rnd * half))
+                r = (_baseline_one_thread(Path(tmp), 5000, half, rnd * half, func)
+                     if which == "baseline" else here(5000, half, rnd * half))
                 out["runs"].append({"round": rnd, "code": which, **r})
                 print(f"5000 shipped, 1 thread, {which} (round {rnd}): {r}", flush=True)
     for which in ("baseline", "this tree"):
@@ -206,7 +230,12 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="fewer repetitions")
     ap.add_argument("--baseline-rev", default=None,
                     help="git revision to time the shipped 5000 px pipeline of, in the same run")
+    ap.add_argument("--end-to-end", action="store_true",
+                    help="with --baseline-rev: time only the whole command (GeoTIFF in/out)")
     args = ap.parse_args()
+    if args.end_to_end:
+        _main_end_to_end(args)
+        return
     shipped = load_pipeline()
     full = _all_applied(shipped)
     reps = {5000: (2, 1) if args.quick else (4, 1), 500: (20, 10) if args.quick else (60, 20)}
@@ -268,6 +297,28 @@ def main() -> None:
     print(f"\n{m['cpus']} CPUs, load average {m['load_average_at_start'][0]} at start, "
           f"{m['load_average_at_end'][0]} at end (shared machine: wall times include waiting); "
           f"peak RSS {results['peak_rss_mb']} MB; results in {OUT.relative_to(ROOT)}")
+
+
+def _main_end_to_end(args: argparse.Namespace) -> None:
+    """Baseline revision and this tree, whole command, alternating; own results file."""
+    if not args.baseline_rev:
+        raise SystemExit("--end-to-end needs --baseline-rev REV")
+    out_path = OUT.with_name("bench_augment_end_to_end.json")
+    load0 = [round(x, 2) for x in os.getloadavg()]
+    res = _baseline_and_current(args.baseline_rev, 4 if args.quick else 6,
+                                func="end_to_end_one_thread")
+    res["machine"] = {"cpus": os.cpu_count(), "load_average_at_start": load0,
+                      "load_average_at_end": [round(x, 2) for x in os.getloadavg()]}
+    out_path.write_text(json.dumps(res, indent=2) + "\n")
+    print("| whole command, 5000² pair, 1 thread | pairs | CPU s/pair | pairs/s (CPU) "
+          "| pairs/s (wall) | load average |\n|---|---|---|---|---|---|")
+    for which in ("baseline", "this tree"):
+        r = res[which]
+        name = f"{res['revision']} ({res['commit'][:8]})" if which == "baseline" else which
+        print(f"| {name} | {r['pairs']} | {r['cpu_seconds_per_pair']} | "
+              f"{r['cpu_pairs_per_second']} | {r['wall_pairs_per_second']} | "
+              f"{', '.join(map(str, r['load_average']))} |")
+    print(f"results in {out_path.relative_to(ROOT)}")
 
 
 if __name__ == "__main__":
