@@ -152,3 +152,44 @@ def test_read_window_boundless_and_max_bands(tmp_path: Path) -> None:
     inside = read_raster(path, window=Window(2, 3, 10, 5))
     assert inside.array.shape == (4, 5, 10) and inside.valid.all()
     assert np.array_equal(inside.array, data[:, 3:8, 2:12])
+
+
+def test_cog_is_fast_deflate_yet_decodes_exactly_with_gdal(tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch
+                                                           ) -> None:
+    """Level-1 deflate COG, raw or zstd scratch: same decoded pixels/mask; GDAL 3.6 reads it."""
+    import shutil
+    import subprocess
+
+    import geosim.io.cog as cog
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (3, 700, 600), dtype=np.uint8)
+    mask = np.ones((700, 600), bool)
+    mask[:40] = False
+    t = Affine(0.05, 0, 300000.0, 0, -0.05, 6200000.0)
+    assert cog.scratch_options({"width": 600, "height": 700, "count": 3,
+                                "dtype": "uint8"})["compress"] == "none"
+    raw = write_geotiff(tmp_path / "raw.tif", img, transform=t, crs="EPSG:32756", mask=mask)
+    monkeypatch.setattr(cog, "SCRATCH_RAW_MAX_BYTES", 0)  # force the zstd scratch path
+    assert cog.scratch_options({"width": 600, "height": 700, "count": 3,
+                                "dtype": "uint8"})["compress"] == "zstd"
+    zst = write_geotiff(tmp_path / "zst.tif", img, transform=t, crs="EPSG:32756", mask=mask)
+    for path in (raw, zst):
+        with rasterio.open(path) as ds:
+            assert ds.compression.name.lower() == "deflate"
+            assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+            assert ds.overviews(1) == [2, 4]  # down to one 256 px block
+            np.testing.assert_array_equal(ds.read(), img)
+            np.testing.assert_array_equal(ds.read_masks(1) > 0, mask)
+            assert ds.transform == t
+    assert not list(tmp_path.glob("*scratch*"))
+    gdalinfo = shutil.which("gdalinfo", path="/usr/bin")
+    if gdalinfo is None:
+        pytest.skip("Debian's gdalinfo not installed")
+    info = json.loads(subprocess.run([gdalinfo, "-json", "-checksum", str(raw)], check=True,
+                                     capture_output=True, text=True).stdout)
+    assert info["metadata"]["IMAGE_STRUCTURE"]["COMPRESSION"] == "DEFLATE"
+    assert info["metadata"]["IMAGE_STRUCTURE"]["LAYOUT"] == "COG"
+    assert info["bands"][0]["mask"]["flags"] == ["PER_DATASET"]
+    assert len(info["bands"][0]["overviews"]) == 2
