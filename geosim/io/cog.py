@@ -11,8 +11,10 @@ Cost (CPU, one 5000 x 5000 RGB tile with its mask; benchmarks/bench_cog_write.py
 copy's deflate at GDAL's default level 6 was the largest part, so geosim writes
 deflate level :data:`DEFLATE_LEVEL` (same decoded pixels, an 8 % larger file),
 and a scratch file small enough is written uncompressed (it is read once, right away).
-GDAL compresses with one thread (``NUM_THREADS=1``): geosim runs one single-threaded
-task per core (docs/scale.md), so more threads would only compete for the same cores.
+GDAL compresses with one thread (``NUM_THREADS=1``): its multi-threaded writer lays the
+blocks out in another order (files must be the same bytes whatever engine ran them), and
+geosim runs one single-threaded task per core (docs/scale.md), so more threads would only
+compete for the same cores without lowering the CPU per file.
 
 References
 ----------
@@ -104,7 +106,6 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
             for leftover in (scratch, scratch.with_name(scratch.name + ".aux.xml")):
                 with contextlib.suppress(FileNotFoundError):
                     leftover.unlink()
-
 
 
 def scratch_options(profile: Mapping[str, Any]) -> dict[str, Any]:
