@@ -302,8 +302,9 @@ def dask_cluster(tmp_path: Path) -> Iterator[tuple[str, list[subprocess.Popen]]]
                 stderr=open(logs / f"worker{i}.log", "wb")))
         from distributed import Client
 
-        with Client(address, timeout=60) as client:
-            client.wait_for_workers(2, timeout=120)
+        # generous: the scheduler and workers start slowly on a loaded machine
+        with Client(address, timeout=300) as client:
+            client.wait_for_workers(2, timeout=300)
         yield address, procs
     finally:
         for p in reversed(procs):
