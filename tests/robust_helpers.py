@@ -31,9 +31,13 @@ def copy_site(samples_dir: Path, dest: Path) -> Path:
     return dest / "site.toml"
 
 
-def run_cli(*args: str | os.PathLike[str], timeout_s: float = 240,
+def run_cli(*args: str | os.PathLike[str], timeout_s: float = 600,
             preexec_fn: Callable[[], None] | None = None) -> CliResult:
-    """``python -m geosim ARGS`` in a subprocess with this checkout first on the path."""
+    """``python -m geosim ARGS`` in a subprocess with this checkout first on the path.
+
+    ``timeout_s`` only stops a hung test: generous, because on a loaded 2-core machine
+    importing geosim alone can take tens of seconds.
+    """
     env = {**os.environ, "PYTHONPATH": str(PROJECT_ROOT)}
     r = subprocess.run([sys.executable, "-m", "geosim", *map(str, args)], env=env,
                        capture_output=True, text=True, timeout=timeout_s,

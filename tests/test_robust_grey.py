@@ -66,7 +66,7 @@ def test_grey_and_grey_alpha_flights_and_satellite_run_end_to_end(samples_dir: P
     _to_grey(flights / "PA2.tif", alpha=True)   # grey + alpha
     _to_grey(site.parent / "satellite" / "satellite.tif", alpha=True)  # PA3 stays RGB
     out = tmp_path / "run"
-    result = run_cli("run", site, "--out", out, timeout_s=400)
+    result = run_cli("run", site, "--out", out)
     assert result.code == 0, result.stderr[-3000:]
     run = json.loads((out / "run.json").read_text())
     assert run["status"] == "ok"

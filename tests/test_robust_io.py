@@ -30,7 +30,7 @@ def test_full_disk_during_a_run_is_one_line_naming_the_file(samples_dir: Path,
     # On the old main: a rasterio traceback ("Write failed"), exit 1.
     site = copy_site(samples_dir, tmp_path / "site")
     out = tmp_path / "run"
-    result = run_cli("run", site, "--out", out, timeout_s=180,
+    result = run_cli("run", site, "--out", out,
                      preexec_fn=_limit_file_size(1_000_000))
     line = assert_one_line_error(result, "cannot be written", str(out))
     assert "free disk space" in line

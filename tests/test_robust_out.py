@@ -24,7 +24,7 @@ def test_out_equal_to_site_folder_is_refused_and_labels_survive(site_copy: Path)
     # On the old main this ran for a minute, exited 0 and deleted labels/PA1, PA2, PA3.geojson.
     site_dir = site_copy.parent
     before = tree_digest(site_dir)
-    result = run_cli("run", site_copy, "--out", site_dir, timeout_s=120)
+    result = run_cli("run", site_copy, "--out", site_dir)
     assert_one_line_error(result, "--out", "contains", "choose a new folder")
     assert tree_digest(site_dir) == before  # nothing written, nothing deleted
 
@@ -52,10 +52,10 @@ def test_out_beside_the_inputs_is_allowed(site_copy: Path) -> None:
 def test_out_an_existing_file_is_one_line_error(site_copy: Path, tmp_path: Path) -> None:
     target = tmp_path / "a_file"
     target.write_text("mine\n")
-    result = run_cli("run", site_copy, "--out", target, timeout_s=120)
+    result = run_cli("run", site_copy, "--out", target)
     assert_one_line_error(result, str(target), "existing file")
     assert target.read_text() == "mine\n"
-    below = run_cli("run", site_copy, "--out", target / "run", timeout_s=120)
+    below = run_cli("run", site_copy, "--out", target / "run")
     assert_one_line_error(below, "is a file")
 
 
@@ -134,7 +134,7 @@ def test_cattle_per_paddock_out_never_overwrites_its_inputs(samples_dir: Path,
     before = tree_digest(tmp_path)
     for target in (paddocks, labels):
         result = run_cli("cattle-per-paddock", "--labels", labels, "--paddocks", paddocks,
-                         "--out", target, timeout_s=120)
+                         "--out", target)
         assert_one_line_error(result, str(target), "input")
     assert tree_digest(tmp_path) == before
 

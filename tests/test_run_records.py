@@ -113,10 +113,14 @@ def test_interrupted_step_is_recorded_interrupted_and_its_partial_outputs_cleane
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
+    # The interruption is an event, not a time: the 4th tile write raises in this process
+    # (the default in-process engine runs the tile tasks one after the other), so exactly
+    # 3 tiles are finished before it, however loaded the machine is.
     monkeypatch.setattr(prep, "write_tile", write_then_interrupt)
     site60 = _with_tile_px(site, 60)
     with pytest.raises(KeyboardInterrupt):
         run_pipeline(site60, out, only=["tiles", "pairs"], **QUIET)
+    assert calls["n"] == 4, calls  # 3 tiles written, the 4th interrupted
     record = _record(out)
     assert record["status"] == "interrupted"
     assert record["steps"]["tiles"]["status"] == "interrupted"
@@ -124,10 +128,11 @@ def test_interrupted_step_is_recorded_interrupted_and_its_partial_outputs_cleane
     assert record["site"]["parameters"]["tile_px"] == 60  # the parameters of this run
     # no 120 px tile and no degraded tile of the old run is left; the 3 new tiles written
     # before the interruption are recorded as outputs
-    assert _tile_sizes(out / "tiles") == {60}
+    on_disk = sorted(p.relative_to(out).as_posix() for p in (out / "tiles").rglob("*.tif"))
+    assert _tile_sizes(out / "tiles") == {60}, (on_disk, record["steps"]["tiles"])
     assert not (out / "degraded").exists() or not any((out / "degraded").rglob("*.tif"))
     partial = [p for p in record["steps"]["tiles"]["outputs"] if p.endswith(".tif")]
-    assert len(partial) == 3 and all((out / p).is_file() for p in partial)
+    assert len(partial) == 3 and sorted(partial) == on_disk, (partial, on_disk)
 
     # a rerun with the old tile_px removes the partial 60 px tiles it does not write
     monkeypatch.setattr(prep, "write_tile", real)
@@ -209,15 +214,15 @@ def test_sigterm_is_recorded_interrupted(tmp_path: Path) -> None:
     proc = subprocess.Popen([sys.executable, "-c", script], env=env,
                             stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 300  # generous: imports are slow on a loaded machine
         while not (out / "started").exists():
             assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-            assert time.monotonic() < deadline, "the step did not start within 60 s"
+            assert time.monotonic() < deadline, "the step did not start within 300 s"
             time.sleep(0.1)
         during = _record(out)
         assert during["status"] == "running" and during["steps"]["slow"]["status"] == "running"
         proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=30)
+        proc.wait(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -257,12 +262,13 @@ def test_sigkill_leaves_a_journal_the_next_run_cleans(tmp_path: Path,
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     proc = subprocess.Popen([sys.executable, "-c", script], env=env)
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 300  # generous: imports are slow on a loaded machine
         while not (out / "started").exists():
-            assert proc.poll() is None and time.monotonic() < deadline
+            assert proc.poll() is None, "the run ended before it could be killed"
+            assert time.monotonic() < deadline, "the step did not start within 300 s"
             time.sleep(0.1)
         proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=30)
+        proc.wait(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
