@@ -95,6 +95,41 @@ def test_make_engine_choices() -> None:
         make_engine(None, "somehost")
 
 
+def _thread_budget(_: int) -> tuple[int, int, int, int, int]:
+    """What a task sees: geosim's budget, scipy.fft's default and what its ``workers=-1``
+    resolves to (scipy's own resolver), OpenCV's threads, the BLAS threads (threadpoolctl)."""
+    import cv2
+    import scipy.fft
+    from scipy.fft._pocketfft import helper
+    from threadpoolctl import threadpool_info
+
+    from geosim.engine import task_threads
+
+    blas = max((p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"),
+               default=1)
+    return (task_threads(), scipy.fft.get_workers(), helper._workers(-1), cv2.getNumThreads(),
+            blas)
+
+
+def test_thread_budget_one_per_worker_every_core_in_process(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A task on a worker of a multi-process engine uses one thread for FFTs (even those
+    asking for every core with workers=-1), OpenCV and GDAL; in this process, every core;
+    BLAS one thread everywhere (bit-identical sums). Restored after the task."""
+    import cv2
+    from scipy.fft._pocketfft import helper
+
+    monkeypatch.delenv("GEOSIM_THREADS", raising=False)
+    cores = os.cpu_count() or 1
+    cv2_before, every_before = cv2.getNumThreads(), helper._workers(-1)
+    assert parallel_map(_thread_budget, [0]) == [(cores, cores, cores, cores, 1)]
+    assert (cv2.getNumThreads(), helper._workers(-1)) == (cv2_before, every_before)
+    with open_engine(2):
+        assert parallel_map(_thread_budget, [0, 1, 2]) == [(1, 1, 1, 1, 1)] * 3
+    monkeypatch.setenv("GEOSIM_THREADS", "1")
+    assert parallel_map(_thread_budget, [0]) == [(1, 1, 1, 1, 1)]
+
+
 def test_in_process_map_keeps_order_and_errors() -> None:
     assert parallel_map(_square, [3, 1, 2]) == [9, 1, 4]
     with pytest.raises(InputFileError, match="tile -1.tif"):

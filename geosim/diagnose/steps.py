@@ -231,22 +231,85 @@ class DiagnoseFlightTask:
     q_min: float
     q_max: float
     dpi: int = DEFAULT_DPI
+    #: Resumable when set: (run folder, the files ``load`` reads) — a rerun with the same
+    #: inputs and parameters reuses the flight's diagnosis instead of making it again.
+    resume: tuple[Path, tuple[Path, ...]] | None = None
+
+
+def _plain(obj: Any) -> Any:
+    """numpy scalars and arrays as Python numbers and lists (for a JSON round trip)."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _diagnose_one(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
+    try:
+        doc = diagnose_grids(task.load(), task.out_dir, phi=task.phi, seed=task.seed,
+                             q_min=task.q_min, q_max=task.q_max,
+                             extra={"flight": task.flight}, dpi=task.dpi)
+    except (DiagnosisError, ExtentError) as exc:
+        return None, str(exc)
+    # through JSON (NaN kept), so that a fresh and a reused diagnosis are the same values
+    return json.loads(json.dumps(doc, default=_plain)), None
 
 
 def diagnose_flight_task(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
     """Diagnose one flight into ``task.out_dir``: (diagnosis.json dict, None), or
-    (None, why) when it cannot be diagnosed (too little overlap, no usable data)."""
+    (None, why) when it cannot be diagnosed (too little overlap, no usable data).
+
+    With ``task.resume`` the flight's diagnosis is skipped when its manifest entry is
+    current (same input files, parameters and output files); the dict then comes from
+    the entry (``"skipped": true`` is not added: callers count skips with
+    :func:`diagnosis_was_current`).
+    """
+    if task.resume is None:
+        return _diagnose_one(task)
+    from geosim import manifest
+
+    run_dir, inputs = task.resume
+    key = f"diagnosis/{task.out_dir.name}/flight"
+    params = {"step": "diagnose", "flight": task.flight, "phi": task.phi, "seed": task.seed,
+              "q_min": task.q_min, "q_max": task.q_max, "dpi": task.dpi,
+              "dir": task.out_dir.name, "max_sat_px": MAX_SAT_PX}
+    recorded = _recorded_files(run_dir, key)
+    entry = manifest.cached(run_dir, key, inputs, params, outputs=recorded)
+    if entry is not None and recorded and isinstance(entry.get("result"), dict):
+        return entry["result"], _CURRENT
+    doc, why = _diagnose_one(task)
+    if doc is not None:
+        outputs = sorted(p for p in task.out_dir.rglob("*") if p.is_file())
+        manifest.record(run_dir, key, inputs, params, outputs=outputs, result=doc)
+    return doc, why
+
+
+#: ``why`` of a diagnosis reused from the manifest (the dict is returned with it).
+_CURRENT = "already current"
+
+
+def diagnosis_was_current(result: tuple[dict[str, Any] | None, str | None]) -> bool:
+    """Whether :func:`diagnose_flight_task` reused a current diagnosis."""
+    return result[0] is not None and result[1] == _CURRENT
+
+
+def _recorded_files(run_dir: Path, key: str) -> list[Path]:
+    """The output files a manifest entry lists (to check they are still those files)."""
+    from geosim import manifest
+
     try:
-        return diagnose_grids(task.load(), task.out_dir, phi=task.phi, seed=task.seed,
-                              q_min=task.q_min, q_max=task.q_max,
-                              extra={"flight": task.flight}, dpi=task.dpi), None
-    except (DiagnosisError, ExtentError) as exc:
-        return None, str(exc)
+        entry = json.loads((Path(run_dir) / manifest.MANIFEST_DIR / f"{key}.json").read_text())
+        return [Path(run_dir) / rel for rel in entry["outputs"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
 
 
 def diagnose_flights(loaders: list[tuple[str, Callable[[], FlightPixels]]], out_dir: Path, *,
                      reference: str | None, phi: int, seed: int = 0, q_min: float = 0.5,
-                     q_max: float = 8.0, dpi: int = DEFAULT_DPI) -> dict[str, Any]:
+                     q_max: float = 8.0, dpi: int = DEFAULT_DPI,
+                     resume: dict[str, tuple[Path, tuple[Path, ...]]] | None = None,
+                     counts: dict[str, int] | None = None) -> dict[str, Any]:
     """Diagnose several flights one at a time and write the combined verdict.
 
     Parameters
@@ -259,6 +322,11 @@ def diagnose_flights(loaders: list[tuple[str, Callable[[], FlightPixels]]], out_
     reference
         The flight whose GeoTIFFs, maps and plots are copied to the top level (default,
         or when it was skipped: the first diagnosed flight).
+    resume
+        Per flight, (run folder, the files its ``load`` reads): its diagnosis is reused
+        when current (:func:`diagnose_flight_task`).
+    counts
+        Filled with ``skipped_current``: flights whose diagnosis was reused.
 
     Returns
     -------
@@ -272,10 +340,13 @@ def diagnose_flights(loaders: list[tuple[str, Callable[[], FlightPixels]]], out_
     skipped: dict[str, str] = {}
     taken: set[str] = set()
     tasks = [DiagnoseFlightTask(fid, load, out_dir / _flight_dir(fid, taken), phi=phi,
-                                seed=seed + 1000 * i, q_min=q_min, q_max=q_max, dpi=dpi)
+                                seed=seed + 1000 * i, q_min=q_min, q_max=q_max, dpi=dpi,
+                                resume=(resume or {}).get(fid))
              for i, (fid, load) in enumerate(loaders)]
-    for task, (doc, why) in zip(tasks, parallel_map(diagnose_flight_task, tasks,
-                                                    desc="diagnose flights"), strict=True):
+    results = parallel_map(diagnose_flight_task, tasks, desc="diagnose flights")
+    if counts is not None:
+        counts["skipped_current"] = sum(map(diagnosis_was_current, results))
+    for task, (doc, why) in zip(tasks, results, strict=True):
         if doc is None:
             skipped[task.flight] = why or ""
         else:
@@ -345,9 +416,16 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
 
     loaders = [(f.id, functools.partial(_read_flight, run, sat_path, f.id, phi))
                for f in site.flights]
+    resume = {f.id: (run.root, _flight_inputs(run, sat_path, f.id)) for f in site.flights}
+    counts: dict[str, int] = {}
     doc = diagnose_flights(loaders, run.diagnosis_dir, reference=reference, phi=phi,
-                           q_min=site.parameters.q_min, q_max=site.parameters.q_max, dpi=dpi)
+                           q_min=site.parameters.q_min, q_max=site.parameters.q_max, dpi=dpi,
+                           resume=resume, counts=counts)
     summary = _summary(doc, run.diagnosis_dir)
+    n_skipped = counts.get("skipped_current", 0)
+    if n_skipped:
+        summary["text"] += (f"; {n_skipped} of {len(site.flights)} flight diagnoses already "
+                            "current, skipped")
     # the bundled sample site ships its ground truth: put fitted and true side by side
     site_path = getattr(site, "path", None)
     truth_path = Path(site_path).parent / "truth.json" if site_path else None
@@ -367,9 +445,21 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
                      "satellite-minus-reference-flight offset in truth.json)\n")
     text = summary.pop("text")
     # the diagnosis writes many files (some through matplotlib): record those written now
+    # ... and those of the flights whose diagnosis was reused (still the recorded files)
+    reused = {p for d in (doc.get("flights") or {}).values() if isinstance(d, dict)
+              for p in _recorded_files(run.root, f"diagnosis/{d.get('dir')}/flight")}
     outputs = [run.rel(p) for p in sorted(run.diagnosis_dir.rglob("*"))
-               if p.is_file() and p.stat().st_mtime >= started - 1.0]
+               if p.is_file() and (p.stat().st_mtime >= started - 1.0 or p in reused)]
+    summary["skipped_current"] = n_skipped
     return StepResult(summary=text, outputs=outputs, record=summary)
+
+
+def _flight_inputs(run: RunDir, sat_path: Path, flight: str) -> tuple[Path, ...]:
+    """The files :func:`_read_flight` reads for ``flight`` (its diagnosis' manifest inputs)."""
+    files = [sat_path, run.aligned(flight)]
+    if run.calibration_json.is_file():
+        files.append(run.calibration_json)
+    return tuple(files)
 
 
 def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,

@@ -335,9 +335,9 @@ def warp_raster_task(task: WarpRasterTask) -> WarpRasterRecord:
     Memory: one destination block (``block_px``²), its coordinates and the source
     window under it.
     """
-    from geosim.prepare.reproject import SUPPORTED_DTYPES, warp_threads
+    from geosim.prepare.reproject import SUPPORTED_DTYPES
 
-    cv2.setNumThreads(warp_threads())
+    # OpenCV's threads: the task's budget, set by the engine (geosim.engine.task_limits)
     rows, cols = task.shape
     t = _aff(task.dst_transform)
     with rasterio.open(task.warp.src_path) as src:
