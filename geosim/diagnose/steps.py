@@ -1,7 +1,8 @@
 """File layer of the diagnosis: read grids, build the baseline, run, write.
 
 * :func:`run_diagnose` — pipeline step: reads ``out_dir/grid/satellite.tif``
-  (0.5 m shared grid), ``out_dir/aligned/<flight>.tif`` (0.05 m) of every flight and
+  (0.5 m shared grid), every flight on the aligned 0.05 m grid (read through its composed
+  warp from the original file, :mod:`geosim.prepare.aligned`) and
   ``out_dir/calibration.json``; writes ``out_dir/diagnosis/``.
 * :func:`diagnose_images` — standalone: any-CRS UAV and satellite GeoTIFFs are
   reprojected onto a shared nested grid (UAV ``phi`` × finer) over their common
@@ -374,11 +375,12 @@ def _read_q_base(path: Path, flight: str) -> float | None:
     return None
 
 
-def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> FlightPixels:
-    """The satellite window over one aligned flight and the flight's UAV pixels under it."""
-    uav_path = run.require_aligned(flight)
-    with open_raster(sat_path, what="satellite on grid") as ds, \
-            open_raster(uav_path, what=f"aligned flight {flight}") as du:
+def _read_flight(run: RunDir, sat_path: Path, aligned: Any, phi: int) -> FlightPixels:
+    """The satellite window over one aligned flight (a
+    :class:`geosim.prepare.aligned.AlignedFlight`) and the flight's UAV pixels under it."""
+    flight = aligned.flight
+    uav_path = aligned.path or aligned.warp.src_path
+    with open_raster(sat_path, what="satellite on grid") as ds, aligned.open() as du:
         row_off, col_off = sat_grid_offset(du.transform, ds.transform, phi,
                                            f"aligned flight {flight}")
         # satellite pixels fully inside the aligned flight's extent
@@ -397,7 +399,12 @@ def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> FlightPi
         uwin = rasterio.windows.Window((win.col_off - col_off) * phi,
                                        (win.row_off - row_off) * phi,
                                        win.width * phi, win.height * phi)
-        uav = read_window(du, uwin, max_bands=3, out_dtype=np.float32, path=uav_path)
+        array, valid = du.read(uwin, n_bands=3)
+        uav = RasterData(array=array.astype(np.float32), valid=valid,
+                         transform=du.transform @ Affine.translation(int(uwin.col_off),
+                                                                     int(uwin.row_off)),
+                         crs=du.crs, band_names=tuple(du.descriptions[:array.shape[0]]),
+                         path=Path(uav_path))
     return FlightPixels(uav=uav, sat=sat, q_base=_read_q_base(run.calibration_json, flight),
                         sources=(str(sat_path), str(uav_path)))
 
@@ -414,9 +421,10 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
     reference = site.reference_flight if site.reference_flight else site.flights[0].id
     phi = site.parameters.phi
 
-    loaders = [(f.id, functools.partial(_read_flight, run, sat_path, f.id, phi))
-               for f in site.flights]
-    resume = {f.id: (run.root, _flight_inputs(run, sat_path, f.id)) for f in site.flights}
+    flights = _aligned_flights(site, run)
+    loaders = [(fid, functools.partial(_read_flight, run, sat_path, flights[fid], phi))
+               for fid in flights]
+    resume = {fid: (run.root, _flight_inputs(run, sat_path, flights[fid])) for fid in flights}
     counts: dict[str, int] = {}
     doc = diagnose_flights(loaders, run.diagnosis_dir, reference=reference, phi=phi,
                            q_min=site.parameters.q_min, q_max=site.parameters.q_max, dpi=dpi,
@@ -454,11 +462,23 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
     return StepResult(summary=text, outputs=outputs, record=summary)
 
 
-def _flight_inputs(run: RunDir, sat_path: Path, flight: str) -> tuple[Path, ...]:
-    """The files :func:`_read_flight` reads for ``flight`` (its diagnosis' manifest inputs)."""
-    files = [sat_path, run.aligned(flight)]
-    if run.calibration_json.is_file():
-        files.append(run.calibration_json)
+def _aligned_flights(site: Any, run: RunDir) -> dict[str, Any]:
+    """The site's flights on the aligned grid: through their composed warps
+    (:func:`geosim.prepare.aligned.aligned_flights`), or, in a run folder without
+    ``alignment.json``, the rasters stored in ``aligned/``."""
+    from geosim.prepare.aligned import AlignedFlight, aligned_flights
+
+    if run.alignment_json.is_file():
+        return aligned_flights(site, run)
+    return {f.id: AlignedFlight.from_raster(f.id, run.require_aligned(f.id))
+            for f in site.flights}
+
+
+def _flight_inputs(run: RunDir, sat_path: Path, aligned: Any) -> tuple[Path, ...]:
+    """The files :func:`_read_flight` reads for a flight (its diagnosis' manifest inputs);
+    ``alignment.json`` too, for the flight's correction."""
+    files = [sat_path, *(Path(p) for p in aligned.sources)]
+    files += [p for p in (run.alignment_json, run.calibration_json) if p.is_file()]
     return tuple(files)
 
 

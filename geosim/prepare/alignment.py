@@ -52,9 +52,10 @@ north-west corner).
 
 from __future__ import annotations
 
+import functools
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import cv2
@@ -76,6 +77,9 @@ from geosim.io.raster import (
     read_window,
 )
 from geosim.prepare.grid import SiteGrid, snap_window_to_sat
+
+#: A raster path, or a reader ``window -> (grey float32, valid bool)``.
+GreySource = str | os.PathLike[str] | Callable[[Window], tuple[np.ndarray, np.ndarray]]
 
 # --------------------------------------------------------------------------- pure helpers
 
@@ -451,11 +455,15 @@ def local_field_stats(shifts_px: np.ndarray, confident: np.ndarray, gsd_m: float
     }
 
 
-def local_check(ref_path: str | os.PathLike[str], mov_path: str | os.PathLike[str], *,
-                window_px: int, block_px: int = 2048, min_confidence: float = 0.1,
-                progress: bool | None = None, what: str = "flight"
+def local_check(ref: GreySource, mov: GreySource, *, window_px: int, block_px: int = 2048,
+                min_confidence: float = 0.1, progress: bool | None = None,
+                what: str = "flight", shape: tuple[int, int] | None = None
                 ) -> list[dict[str, Any]]:
-    """Local shift field between two aligned rasters, block by block.
+    """Local shift field between two flights on the aligned grid, block by block.
+
+    ``ref`` and ``mov`` are each a raster path or a reader ``window -> (grey, valid)``
+    (e.g. :class:`geosim.prepare.onewarp.WarpedGreyReader`: a flight read through its
+    composed warp); ``shape = (rows, cols)`` of the grid is needed when ``ref`` is a reader.
 
     Returns one record per window: ``col``, ``row`` (window centre, aligned-grid
     corner coordinates), ``dx_px``, ``dy_px`` (moving content relative to the
@@ -464,16 +472,22 @@ def local_check(ref_path: str | os.PathLike[str], mov_path: str | os.PathLike[st
     from geosim.align.local import local_shift_field
 
     block = max(window_px, (block_px // window_px) * window_px)
-    with rasterio.open(ref_path) as ds:
-        width, height = ds.width, ds.height
+    if shape is None:
+        if callable(ref):
+            raise TypeError("local_check: give shape when ref is a reader")
+        with rasterio.open(ref) as ds:
+            shape = (ds.height, ds.width)
+    height, width = int(shape[0]), int(shape[1])
+    read_ref = ref if callable(ref) else functools.partial(read_grey_window, ref)
+    read_mov = mov if callable(mov) else functools.partial(read_grey_window, mov)
     records: list[dict[str, Any]] = []
     blocks = list(iter_windows(width, height, block_px=block))
     for blk in tqdm(blocks, desc=f"local check {what}", unit="block", leave=False,
                     disable=None if progress is None else not progress):
         if blk.width < window_px or blk.height < window_px:
             continue
-        rg, rv = read_grey_window(ref_path, blk)
-        mg, mv = read_grey_window(mov_path, blk)
+        rg, rv = read_ref(blk)
+        mg, mv = read_mov(blk)
         if not (rv & mv).any():
             continue
         field = local_shift_field(rg, mg, valid=rv & mv, window_px=window_px,

@@ -171,6 +171,67 @@ def _naming_read_failures(path: str) -> Iterator[None]:
 
 
 @dataclass(frozen=True)
+class WarpTileTask:
+    """One tile of one flight, resampled once from the original flight (an engine task).
+
+    The tile's pixels are those of the flight on the aligned grid
+    (:class:`geosim.prepare.aligned.AlignedFlight`) over ``tile.window``; parts of the
+    window outside the aligned grid (partial tiles) are 0 and masked.
+    """
+
+    flight: Any                       # geosim.prepare.aligned.AlignedFlight
+    dst_path: str
+    tile: TileSpec
+    tags: Mapping[str, str]
+    block_px: int = 2048
+
+
+def warp_tile_task(task: WarpTileTask) -> str:
+    """Run a :class:`WarpTileTask`; returns the tile path.
+
+    Memory: the tile (bands × tile_px²) plus one ``block_px``² block's coordinates and
+    source window.
+    """
+    from geosim.io.raster import iter_windows
+
+    win = task.tile.window
+    width, height = int(win.width), int(win.height)
+    with _naming_read_failures(task.flight.warp.src_path if task.flight.warp is not None
+                               else str(task.flight.path)), task.flight.open() as reader:
+        img = np.zeros((reader.count, height, width), dtype=reader.dtype)
+        valid = np.zeros((height, width), dtype=bool)
+        for blk in iter_windows(width, height, block_px=task.block_px):
+            r0, c0 = int(blk.row_off), int(blk.col_off)
+            r1, c1 = r0 + int(blk.height), c0 + int(blk.width)
+            img[:, r0:r1, c0:c1], valid[r0:r1, c0:c1] = reader.read(Window(
+                int(win.col_off) + c0, int(win.row_off) + r0, c1 - c0, r1 - r0))
+        with create_geotiff(task.dst_path, width=width, height=height, count=reader.count,
+                            dtype=reader.dtype, crs=reader.crs, transform=task.tile.transform,
+                            band_descriptions=reader.descriptions, tags=task.tags,
+                            internal_mask=True) as dst:
+            dst.colorinterp = reader.colorinterp
+            dst.write(img)
+            dst.write_mask(np.where(valid, 255, 0).astype(np.uint8))
+    return str(task.dst_path)
+
+
+@dataclass(frozen=True)
+class AlignedCoverageTask:
+    """Valid fractions of tile windows of one flight on the aligned grid (an engine task)."""
+
+    flight: Any                       # geosim.prepare.aligned.AlignedFlight
+    windows: tuple[Window, ...]
+    block_px: int = 2048
+
+
+def aligned_coverage_task(task: AlignedCoverageTask) -> list[float]:
+    """Run an :class:`AlignedCoverageTask`: one fraction per window (masks only: the
+    conservative mask of the warp, no image resampled)."""
+    with task.flight.open() as reader:
+        return [reader.valid_fraction(w, task.block_px) for w in task.windows]
+
+
+@dataclass(frozen=True)
 class CoverageTask:
     """Valid fractions of every tile window of one aligned raster (an engine task)."""
 
