@@ -421,7 +421,9 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
     reference = site.reference_flight if site.reference_flight else site.flights[0].id
     phi = site.parameters.phi
 
-    flights = _aligned_flights(site, run)
+    from geosim.prepare.aligned import aligned_flights
+
+    flights = aligned_flights(site, run)
     loaders = [(fid, functools.partial(_read_flight, run, sat_path, flights[fid], phi))
                for fid in flights]
     resume = {fid: (run.root, _flight_inputs(run, sat_path, flights[fid])) for fid in flights}
@@ -460,18 +462,6 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
                if p.is_file() and (p.stat().st_mtime >= started - 1.0 or p in reused)]
     summary["skipped_current"] = n_skipped
     return StepResult(summary=text, outputs=outputs, record=summary)
-
-
-def _aligned_flights(site: Any, run: RunDir) -> dict[str, Any]:
-    """The site's flights on the aligned grid: through their composed warps
-    (:func:`geosim.prepare.aligned.aligned_flights`), or, in a run folder without
-    ``alignment.json``, the rasters stored in ``aligned/``."""
-    from geosim.prepare.aligned import AlignedFlight, aligned_flights
-
-    if run.alignment_json.is_file():
-        return aligned_flights(site, run)
-    return {f.id: AlignedFlight.from_raster(f.id, run.require_aligned(f.id))
-            for f in site.flights}
 
 
 def _flight_inputs(run: RunDir, sat_path: Path, aligned: Any) -> tuple[Path, ...]:

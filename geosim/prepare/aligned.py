@@ -181,17 +181,24 @@ def aligned_flights(site: Any, out: RunPath) -> dict[str, AlignedFlight]:
     ``alignment.json`` written before the warps were recorded (no ``aligned_to_stated``)
     falls back to the stored ``aligned/<flight>.tif``.
 
+    A run folder without ``alignment.json`` whose ``aligned/`` holds every flight is read
+    from those rasters.
+
     Raises
     ------
     InputFileError
         ``grid/grid.json`` or ``alignment.json`` is missing (run the earlier steps).
     AlignmentError
-        ``alignment.json`` has no entry for a flight of the site.
+        A flight has neither a recorded warp nor a stored aligned raster.
     """
     from geosim.prepare.local_align import read_field_geotiff
     from geosim.prepare.steps import read_grid
 
     run = RunDir.of(out)
+    if not run.alignment_json.is_file() and all(run.aligned(f.id).is_file()
+                                                for f in site.flights):
+        # rasters already on the aligned grid, without the alignment that made them
+        return {f.id: AlignedFlight.from_raster(f.id, run.aligned(f.id)) for f in site.flights}
     doc = read_alignment_doc(run)
     grid = read_grid(run)
     ag = doc["aligned_grid"]
@@ -200,12 +207,14 @@ def aligned_flights(site: Any, out: RunPath) -> dict[str, AlignedFlight]:
     out_flights: dict[str, AlignedFlight] = {}
     for f in site.flights:
         entry = (doc.get("flights") or {}).get(f.id)
-        if not isinstance(entry, dict):
-            raise AlignmentError(f"{run.alignment_json}: no entry for flight {f.id}; re-run "
-                                 "'geosim align'")
-        if "aligned_to_stated" not in entry:
-            out_flights[f.id] = AlignedFlight.from_raster(f.id, run.require_aligned(f.id))
-            continue
+        if not isinstance(entry, dict) or "aligned_to_stated" not in entry:
+            # an alignment.json that does not record the warps (another geosim version, or
+            # written by hand): the stored aligned raster, when there is one
+            if run.aligned(f.id).is_file():
+                out_flights[f.id] = AlignedFlight.from_raster(f.id, run.aligned(f.id))
+                continue
+            raise AlignmentError(f"{run.alignment_json}: no warp recorded for flight {f.id} "
+                                 f"and no {run.rel(run.aligned(f.id))}; re-run 'geosim align'")
         sources = [str(f.image)]
         field = None
         if entry.get("local_field"):
