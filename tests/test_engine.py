@@ -186,7 +186,7 @@ def test_two_worker_cluster_gives_the_same_outputs_and_reruns_skip(
     record = _run(samples_dir / "site.toml", out, "--workers", "2", *_only(STEPS))
     engine = record["engine"]
     assert engine["kind"] == "local-cluster" and engine["workers"] == 2
-    assert len(engine["workers_used"]) == 2  # 3 aligned flights, 12 tiles: both got work
+    assert len(engine["workers_used"]) == 2  # 12 tiles, 3 calibrations: both got work
     want = output_digests(base)
     assert len(want) > 40
     assert differing(want, output_digests(out)) == []
@@ -194,8 +194,9 @@ def test_two_worker_cluster_gives_the_same_outputs_and_reruns_skip(
     # Nothing changed: the rerun skips every per-output task and says so.
     again = _run(samples_dir / "site.toml", out, "--workers", "2", *_only(STEPS))
     steps = again["steps"]
-    assert steps["align"]["summary"]["skipped_current"] == 3
+    assert steps["align"]["summary"]["skipped_current"] == 0  # no aligned/ rasters to skip
     assert steps["tiles"]["summary"]["skipped_current"] == 12
+    assert steps["labels"]["summary"]["skipped_current"] == 1
     assert steps["calibrate"]["summary"]["skipped_current"] == 3
     assert steps["degrade"]["summary"]["skipped_current"] == 12
     assert "12 of 12 already current, skipped" in steps["degrade"]["summary"]["text"]
@@ -222,11 +223,11 @@ def test_kill_9_mid_run_then_rerun_equals_uninterrupted(
                                                         os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
-    entries = out / ".geosim" / "manifest" / "aligned"
+    entries = out / ".geosim" / "manifest" / "tiles"   # tiles/<flight>/<tile>.json
     try:
         deadline = time.monotonic() + 240
         while time.monotonic() < deadline and proc.poll() is None:
-            if entries.is_dir() and any(entries.glob("*.json")):
+            if entries.is_dir() and any(entries.rglob("*.json")):
                 break
             time.sleep(0.05)
         assert proc.poll() is None, "the run finished before it could be killed"
@@ -235,10 +236,10 @@ def test_kill_9_mid_run_then_rerun_equals_uninterrupted(
     finally:
         _kill_group(proc)
     assert not (out / "degraded").exists()  # killed mid-run
-    finished_before = len(list(entries.glob("*.json")))
+    finished_before = len(list(entries.rglob("*.json")))
     assert finished_before >= 1
     record = _run(samples_dir / "site.toml", out, "--workers", "2", *_only(STEPS))
-    assert record["steps"]["align"]["summary"]["skipped_current"] >= finished_before
+    assert record["steps"]["tiles"]["summary"]["skipped_current"] >= finished_before
     assert differing(output_digests(base), output_digests(out)) == []
 
 
