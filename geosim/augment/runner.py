@@ -44,7 +44,7 @@ from geosim.augment.io import (
 from geosim.augment.pipeline import AugImage, AugmentResult, Pipeline, flatten_records
 from geosim.engine import parallel_map
 from geosim.errors import OutputError, RasterError
-from geosim.io.atomic import write_json, write_text
+from geosim.io.atomic import json_default, write_json, write_text
 from geosim.io.paths import safe_name
 from geosim.io.raster import provenance_tags
 from geosim.rundir import RunDir
@@ -138,14 +138,11 @@ def augment_pair_task(task: AugmentPairTask) -> AugmentPairDone:
 
 
 def _plain(obj: Any) -> Any:
-    """numpy scalars as Python values that write the same CSV text (for JSON)."""
+    """:func:`~geosim.io.atomic.json_default`, but a float32 keeps its short text (as the
+    CSV writer printed it before the JSON round trip of the resume entries)."""
     if isinstance(obj, np.floating) and not isinstance(obj, np.float64):
-        return float(str(obj))  # float32: keep its short text, as csv wrote it before
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+        return float(str(obj))
+    return json_default(obj)
 
 
 def _pair_key(task: AugmentPairTask) -> tuple[str, list[Path], dict[str, Any]]:

@@ -41,6 +41,7 @@ from geosim.diagnose.report import DEFAULT_DPI, write_diagnosis
 from geosim.diagnose.simulate import QSimulator
 from geosim.engine import parallel_map
 from geosim.errors import DiagnosisError, ExtentError
+from geosim.io.atomic import to_jsonable
 from geosim.io.paths import safe_name, unique_name
 from geosim.io.raster import RasterData, open_raster, read_valid_mask, read_window
 from geosim.physics.radiometry import luma
@@ -237,15 +238,6 @@ class DiagnoseFlightTask:
     resume: tuple[Path, tuple[Path, ...]] | None = None
 
 
-def _plain(obj: Any) -> Any:
-    """numpy scalars and arrays as Python numbers and lists (for a JSON round trip)."""
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
 def _diagnose_one(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
     try:
         doc = diagnose_grids(task.load(), task.out_dir, phi=task.phi, seed=task.seed,
@@ -254,7 +246,7 @@ def _diagnose_one(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str 
     except (DiagnosisError, ExtentError) as exc:
         return None, str(exc)
     # through JSON (NaN kept), so that a fresh and a reused diagnosis are the same values
-    return json.loads(json.dumps(doc, default=_plain)), None
+    return to_jsonable(doc), None
 
 
 def diagnose_flight_task(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
