@@ -203,13 +203,6 @@ def worker_threads() -> int:
     return _threads_from_env(1)
 
 
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """:func:`task_limits` with one thread for everything (kept for callers and tests)."""
-    with task_limits(1):
-        yield
-
-
 def _run_task(fn: Callable[[T], R], item: T) -> tuple[str, R]:
     """Run one task on a worker; return the worker's address with the result."""
     from distributed import get_worker
