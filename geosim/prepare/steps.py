@@ -350,9 +350,9 @@ def _local_fields(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
     both read on the fly through their composed warps (nothing written), fitted
     (:mod:`geosim.align.field`) and written to ``alignment_field/<flight>.tif``. Returns
     the ``local_field`` record per flight and the other flights' warp tasks with the field
-    plugged into the composed warp: each flight is
-    then resampled once, from its original file, onto the aligned grid (tile by tile by the
-    tiles step; whole, into ``aligned/``, only with ``keep_intermediates``).
+    plugged into the composed warp: each flight is then resampled once, from its original
+    file, onto the aligned grid (tile by tile by the tiles step; whole, into ``aligned/``,
+    only with ``keep_intermediates``).
     """
     from dataclasses import replace
 
@@ -509,13 +509,15 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
     arrows = []
     win_px = int(min(LOCAL_WINDOW_PX, max(64, min(awin.width, awin.height) // 4)))
     shape = (int(awin.height), int(awin.width))
+    checks = al.local_checks(
+        WarpedGreyReader(tasks[ref_id].warp, tasks[ref_id].dst_transform),
+        {f.id: WarpedGreyReader(tasks[f.id].warp, tasks[f.id].dst_transform)
+         for f in site.flights if f.id != ref_id},
+        shape=shape, window_px=win_px, block_px=BLOCK_PX, min_confidence=p.min_align_confidence)
     for f in site.flights:
         if f.id == ref_id:
             continue
-        recs = al.local_check(WarpedGreyReader(tasks[ref_id].warp, tasks[ref_id].dst_transform),
-                              WarpedGreyReader(tasks[f.id].warp, tasks[f.id].dst_transform),
-                              shape=shape, window_px=win_px, block_px=BLOCK_PX,
-                              min_confidence=p.min_align_confidence, what=f.id)
+        recs = checks[f.id]
         shifts = np.array([[r["dx_px"], r["dy_px"]] for r in recs]).reshape(-1, 2)
         conf = np.array([r["confident"] for r in recs], dtype=bool)
         local[f.id] = {**al.local_field_stats(shifts, conf, grid.uav_gsd_m),
