@@ -191,8 +191,8 @@ def aligned_flights(site: Any, out: RunPath) -> dict[str, AlignedFlight]:
     AlignmentError
         A flight has neither a recorded warp nor a stored aligned raster.
     """
+    from geosim.prepare.grid import SiteGrid
     from geosim.prepare.local_align import read_field_geotiff
-    from geosim.prepare.steps import read_grid
 
     run = RunDir.of(out)
     if not run.alignment_json.is_file() and all(run.aligned(f.id).is_file()
@@ -200,7 +200,7 @@ def aligned_flights(site: Any, out: RunPath) -> dict[str, AlignedFlight]:
         # rasters already on the aligned grid, without the alignment that made them
         return {f.id: AlignedFlight.from_raster(f.id, run.aligned(f.id)) for f in site.flights}
     doc = read_alignment_doc(run)
-    grid = read_grid(run)
+    grid = SiteGrid.from_dict(json.loads(run.require_grid().read_text()))
     ag = doc["aligned_grid"]
     transform = tuple(float(v) for v in ag["transform"][:6])
     shape = (int(ag["shape"][0]), int(ag["shape"][1]))

@@ -422,6 +422,41 @@ def _run_warps(run: RunDir, tasks: list[WarpRasterTask]) -> int:
         for t in tasks], desc="align"))
 
 
+def _local_check(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
+                 tasks: dict[str, WarpRasterTask]) -> tuple[dict[str, Any], bool]:
+    """Remaining shift field between each aligned flight and the reference (both read
+    through their warps); writes ``alignment_check.geojson``. Returns the ``local_check``
+    statistics per flight and whether the arrows file was written."""
+    ref_id = site.reference_flight
+    p = site.parameters
+    aligned_transform = grid.uav_window_transform(awin)
+    local: dict[str, Any] = {}
+    arrows = []
+    win_px = int(min(LOCAL_WINDOW_PX, max(64, min(awin.width, awin.height) // 4)))
+    shape = (int(awin.height), int(awin.width))
+    checks = al.local_checks(
+        WarpedGreyReader(tasks[ref_id].warp, tasks[ref_id].dst_transform),
+        {f.id: WarpedGreyReader(tasks[f.id].warp, tasks[f.id].dst_transform)
+         for f in site.flights if f.id != ref_id},
+        shape=shape, window_px=win_px, block_px=BLOCK_PX, min_confidence=p.min_align_confidence)
+    for f in site.flights:
+        if f.id == ref_id:
+            continue
+        recs = checks[f.id]
+        shifts = np.array([[r["dx_px"], r["dy_px"]] for r in recs]).reshape(-1, 2)
+        conf = np.array([r["confident"] for r in recs], dtype=bool)
+        local[f.id] = {**al.local_field_stats(shifts, conf, grid.uav_gsd_m),
+                       "window_px": win_px}
+        arrows.append(al.arrows_gdf(recs, aligned_transform, grid.crs.to_wkt(), f.id))
+    if arrows:
+        import pandas as pd
+
+        gdf = gpd.GeoDataFrame(pd.concat(arrows, ignore_index=True), geometry="geometry",
+                               crs=grid.crs.to_wkt())
+        write_geojson(gdf, run.alignment_check_geojson)
+    return local, bool(arrows)
+
+
 def run_align(site: SiteConfig, out: RunPath) -> StepResult:
     """Register every flight to the reference and resample it onto the aligned grid.
 
@@ -505,30 +540,7 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
         n_skipped = _run_warps(run, list(tasks.values()))
 
     # local check: remaining shift field between each aligned flight and the reference
-    local: dict[str, Any] = {}
-    arrows = []
-    win_px = int(min(LOCAL_WINDOW_PX, max(64, min(awin.width, awin.height) // 4)))
-    shape = (int(awin.height), int(awin.width))
-    checks = al.local_checks(
-        WarpedGreyReader(tasks[ref_id].warp, tasks[ref_id].dst_transform),
-        {f.id: WarpedGreyReader(tasks[f.id].warp, tasks[f.id].dst_transform)
-         for f in site.flights if f.id != ref_id},
-        shape=shape, window_px=win_px, block_px=BLOCK_PX, min_confidence=p.min_align_confidence)
-    for f in site.flights:
-        if f.id == ref_id:
-            continue
-        recs = checks[f.id]
-        shifts = np.array([[r["dx_px"], r["dy_px"]] for r in recs]).reshape(-1, 2)
-        conf = np.array([r["confident"] for r in recs], dtype=bool)
-        local[f.id] = {**al.local_field_stats(shifts, conf, grid.uav_gsd_m),
-                       "window_px": win_px}
-        arrows.append(al.arrows_gdf(recs, aligned_transform, grid.crs.to_wkt(), f.id))
-    if arrows:
-        import pandas as pd
-
-        gdf = gpd.GeoDataFrame(pd.concat(arrows, ignore_index=True), geometry="geometry",
-                               crs=grid.crs.to_wkt())
-        write_geojson(gdf, run.alignment_check_geojson)
+    local, arrows = _local_check(site, run, grid, awin, tasks)
 
     doc = {
         "reference": ref_id,
