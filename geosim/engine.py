@@ -76,8 +76,9 @@ class InProcess:
             desc: str | None = None) -> list[R]:
         items = list(items)
         out = []
+        threads = in_process_threads()
         for item in tqdm(items, desc=desc, unit="task", disable=None, leave=False):
-            with one_thread():
+            with task_limits(threads):
                 out.append(fn(item))
         return out
 
@@ -113,24 +114,67 @@ def _setup_worker(quiet: bool = False) -> dict[str, str]:
     return _geosim_identity()
 
 
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """BLAS, OpenMP and OpenCV limited to one thread while a task runs, on every engine.
+def _threads_from_env(default: int) -> int:
+    """``GEOSIM_THREADS`` when set to a whole number ≥ 1, else ``default``."""
+    env = os.environ.get("GEOSIM_THREADS", "").strip()
+    return int(env) if env.isdigit() and int(env) > 0 else default
 
-    Multi-threaded BLAS sums in an order that depends on its thread count, which changes
-    the last bits of floating-point results (seen in calibration.json); one thread per
-    task everywhere keeps the outputs bit-identical whatever engine runs them.
+
+_TASK_THREADS: ContextVar[int | None] = ContextVar("geosim_task_threads", default=None)
+
+
+def task_threads() -> int:
+    """Threads the running task may use for FFTs, OpenCV and GDAL (warps, block decoding).
+
+    Inside a task: what its engine gave it (1 on a Dask worker, every core in this
+    process). Outside any task (a library call, the driver's own work): ``GEOSIM_THREADS``
+    if set, else every core.
+    """
+    threads = _TASK_THREADS.get()
+    return threads if threads is not None else _threads_from_env(os.cpu_count() or 1)
+
+
+@contextmanager
+def task_limits(threads: int) -> Iterator[None]:
+    """The thread budget of one task: ``threads`` for FFTs, OpenCV and GDAL, one for BLAS.
+
+    * BLAS and OpenMP: one thread on every engine. A multi-threaded BLAS sums in an order
+      that depends on its thread count, which changes the last bits of floating-point
+      results (seen in calibration.json); one thread everywhere keeps outputs identical.
+    * ``scipy.fft``: ``threads`` workers (``scipy.fft.set_workers``), which every geosim
+      kernel uses by default (``workers=None``): on a worker of a multi-process engine
+      every core is already busy with another worker, and N processes × N FFT threads on
+      N cores only adds contention. (pocketfft splits independent 1-D transforms over its
+      threads, so the results do not depend on the count.)
+    * OpenCV: ``threads`` (its parallel loops split rows; results do not depend on it).
+    * GDAL: :func:`task_threads` returns ``threads``; the warp and decode calls ask it.
     """
     import cv2
+    import scipy.fft
     from threadpoolctl import threadpool_limits
 
+    threads = max(1, int(threads))
     cv2_threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
+    cv2.setNumThreads(threads)
+    token = _TASK_THREADS.set(threads)
     try:
-        with threadpool_limits(limits=1):
+        with threadpool_limits(limits=1), scipy.fft.set_workers(threads):
             yield
     finally:
+        _TASK_THREADS.reset(token)
         cv2.setNumThreads(cv2_threads)
+
+
+def in_process_threads() -> int:
+    """Threads of a task run in this process (``--workers 1``): every core, or
+    ``GEOSIM_THREADS``."""
+    return _threads_from_env(os.cpu_count() or 1)
+
+
+def worker_threads() -> int:
+    """Threads of a task on a Dask worker: one (the worker process is the unit of
+    parallelism), or the worker's ``GEOSIM_THREADS``."""
+    return _threads_from_env(1)
 
 
 def _run_task(fn: Callable[[T], R], item: T) -> tuple[str, R]:
@@ -140,7 +184,7 @@ def _run_task(fn: Callable[[T], R], item: T) -> tuple[str, R]:
     from geosim.errors import GeosimError
 
     try:
-        with one_thread():
+        with task_limits(worker_threads()):
             return get_worker().address, fn(item)
     except GeosimError as exc:
         # The message is the error; its cause or context (often a GDAL exception that does
@@ -425,4 +469,5 @@ def parallel_map(fn: Callable[[T], R], items: Iterable[T], *,
 __all__: Sequence[str] = (
     "Engine", "InProcess", "DaskEngine", "LocalCluster", "SchedulerCluster", "make_engine",
     "open_engine", "using", "active", "parallel_map", "default_workers",
+    "task_threads", "task_limits",
 )

@@ -329,7 +329,7 @@ def test_similarity_model_writes_no_field(warp_runs):
 
 
 def test_local_model_resamples_once_from_the_original(warp_runs):
-    """No grid/ copy; aligned/MOV.tif is one bicubic remap of the original flight through
+    """aligned/MOV.tif is one bicubic remap of the original flight through
     the composed mapping (a second interpolation, as from grid/<flight>.tif, differed from
     this oracle by 0.78 grey levels on average and up to 10.5)."""
     from rasterio.windows import Window
@@ -337,9 +337,12 @@ def test_local_model_resamples_once_from_the_original(warp_runs):
     from tests.warp_case import single_remap_oracle
 
     case, out, _ = warp_runs["local"]
-    assert not (out / "grid" / "MOV.tif").exists() and not (out / "grid" / "REF.tif").exists()
     n = 512
     with rasterio.open(out / "aligned" / "MOV.tif") as ds:
+        # made from the original file (and the field), not from the grid/ copy that
+        # keep_intermediates also writes
+        assert json.loads(ds.tags()["GEOSIM_SOURCES"]) == [
+            str(case.mov_path), "alignment_field/MOV.tif"]
         r0, c0 = ds.height // 2 - n // 2, ds.width // 2 - n // 2 - 300
         got = ds.read([1, 2, 3], window=Window(c0, r0, n, n)).astype(np.float32).mean(axis=0)
         ok = ds.read_masks(1, window=Window(c0, r0, n, n)) > 0
@@ -348,6 +351,33 @@ def test_local_model_resamples_once_from_the_original(warp_runs):
     diff = np.abs(got - oracle)[ok]
     # what is left: 8-bit rounding, OpenCV's 1/32 px positions, the 16 px lattice
     assert diff.mean() < 0.35 and diff.max() < 3.0
+
+
+def test_tiles_resampled_once_equal_the_aligned_rasters(warp_runs):
+    """The tiles step resamples each tile once from the original flight, through the warp it
+    rebuilds from alignment.json and alignment_field/<flight>.tif (the field read back from
+    its file): the same pixels and masks, bit for bit, as the windows of the whole-flight
+    aligned rasters the align step wrote (keep_intermediates), for both models."""
+    from rasterio.windows import Window
+
+    from geosim.config import load_site
+    from geosim.prepare.steps import run_tiles
+
+    for model in ("similarity", "local"):
+        case, out, _ = warp_runs[model]
+        run_tiles(load_site(case.site_path), out)
+        n = 0
+        for rec in json.loads((out / "tiles" / "index.json").read_text())["tiles"]:
+            for fid in ("REF", "MOV"):
+                path = out / "tiles" / fid / f"{rec['tile_id']}.tif"
+                with rasterio.open(path) as t, rasterio.open(out / "aligned" / f"{fid}.tif") as a:
+                    win = Window(rec["col"] * rec["tile_px"], rec["row"] * rec["tile_px"],
+                                 t.width, t.height)
+                    assert t.transform == a.window_transform(win)
+                    assert np.array_equal(t.read(), a.read(window=win))
+                    assert np.array_equal(t.read_masks(1), a.read_masks(1, window=win))
+                n += 1
+        assert n >= 4, model
 
 
 def _smooth_field(origin_x: float, origin_y: float) -> DisplacementField:

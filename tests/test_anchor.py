@@ -426,15 +426,20 @@ def test_default_anchor_leaves_outputs_unchanged(sample_runs):
     win = Window(w["col_off"], w["row_off"], w["width"], w["height"])
     warp = ComposedWarp.for_flight(site.flight("PA1").image, grid.crs, grid.uav_transform)
     img, ok = read_warped(warp, grid.uav_window_transform(win), (win.height, win.width))
-    with rasterio.open(out / "aligned" / "PA1.tif") as al:
-        assert np.array_equal(img, al.read())
-        assert np.array_equal(ok, al.read_masks(1) > 0)
+    # (the aligned flight as the tiles read it: through the warp recorded in alignment.json)
+    from geosim.prepare.aligned import aligned_flights
+
+    assert ref["aligned_to_stated"] == [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    with aligned_flights(site, out)["PA1"].open() as al:
+        got, got_ok = al.read(Window(0, 0, win.width, win.height))
+    assert np.array_equal(img, got) and np.array_equal(ok, got_ok)
     run = json.loads((out / "run.json").read_text())
     assert run["site"]["anchor"] == "reference_flight"
     assert run["steps"]["align"]["summary"]["anchor"]["to"] == "reference_flight"
     # the anchored run resamples the reference flight and moves the aligned window with T
     sdoc = json.loads((outs["satellite"] / "alignment.json").read_text())
-    with rasterio.open(outs["satellite"] / "aligned" / "PA1.tif") as al:
+    assert sdoc["flights"]["PA1"]["aligned_to_stated"] != [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    with aligned_flights(sites["satellite"], outs["satellite"])["PA1"].open() as al:
         assert al.transform == Affine(*sdoc["aligned_grid"]["transform"])
     assert sdoc["flights"]["PA1"]["to_reference"]["shift_m"] == [0.0, 0.0]
 

@@ -212,6 +212,49 @@ def test_augmented_yolo_dataset_is_split_by_source_tile(run_dir: Path, tmp_path:
     assert {next(iter(s)) for s in side_of.values()} == {"train", "val"}
 
 
+def test_interrupted_or_repeated_run_resumes(run_dir: Path, tmp_path: Path) -> None:
+    """Resumable: after an interrupted run (no augmented_pairs.csv yet) the rerun skips the
+    pairs already made and finishes with the same files as an uninterrupted run; an
+    --overwrite rerun with nothing changed skips every pair and says so; another seed
+    makes every pair again."""
+    import hashlib
+
+    def digests(folder: Path) -> dict[str, str]:
+        return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(folder.rglob("*")) if p.is_file()
+                and ".geosim" not in p.parts and p.name not in ("augment.json", "run.json")}
+
+    args = ("--pairs", run_dir / "pairs.csv", "--n", 2, "--seed", 5)
+    whole = tmp_path / "whole"
+    assert _invoke(*args, "--out", whole).exit_code == 0
+    want = digests(whole)
+    assert len(want) > 20
+
+    cut = tmp_path / "cut"
+    assert _invoke(*args, "--out", cut).exit_code == 0
+    # an interrupted run: the last pair never finished, the dataset files not written
+    (cut / "augmented_pairs.csv").unlink()
+    (cut / "data.yaml").unlink()
+    last = sorted((cut / ".geosim" / "manifest" / "pairs").glob("*.json"))[-1]
+    last.unlink()
+    for p in (cut / "images").glob(f"{last.stem}_k001_*"):
+        p.unlink()
+    res = _invoke(*args, "--out", cut)
+    assert res.exit_code == 0, res.output
+    n_pairs = len(list((cut / ".geosim" / "manifest" / "pairs").glob("*.json")))
+    assert f"{n_pairs - 1} of {n_pairs} pairs already current, skipped" in res.output
+    assert digests(cut) == want
+    assert json.loads((cut / "augment.json").read_text())["skipped_current"] == n_pairs - 1
+
+    res = _invoke(*args, "--out", cut, "--overwrite")
+    assert f"{n_pairs} of {n_pairs} pairs already current, skipped" in res.output
+    assert digests(cut) == want
+    res = _invoke("--pairs", run_dir / "pairs.csv", "--n", 1, "--seed", 6, "--out", cut,
+                  "--overwrite")
+    assert res.exit_code == 0 and "already current" not in res.output
+    assert len(list((cut / "images").glob("*"))) == 2 * n_pairs  # the n = 2 files removed
+
+
 def test_bad_inputs_give_one_line_errors(run_dir: Path, tmp_path: Path) -> None:
     runner = CliRunner()
     res = runner.invoke(cli, ["augment", "--pairs", str(tmp_path / "nope.csv"),

@@ -26,8 +26,18 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def run_dir(samples_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The sample site run with keep_intermediates (so the whole-flight aligned/ rasters,
+    large enough for overviews, are delivered and checked too)."""
+    import re
+
     out = tmp_path_factory.mktemp("deliver")
-    result = CliRunner().invoke(cli, ["run", str(samples_dir / "site.toml"), "--out", str(out)])
+    text = re.sub(r'^(image|labels|path|paddocks) = "([^"]+)"',
+                  lambda m: f'{m[1]} = "{(samples_dir / m[2]).resolve().as_posix()}"',
+                  (samples_dir / "site.toml").read_text(), flags=re.M)
+    site = out.parent / "deliver_site.toml"
+    site.write_text(text.replace("[parameters]\n", "[parameters]\nkeep_intermediates = true\n"))
+    assert "keep_intermediates = true" in site.read_text()
+    result = CliRunner().invoke(cli, ["run", str(site), "--out", str(out)])
     assert result.exit_code == 0, result.output
     return out
 
@@ -67,7 +77,8 @@ def test_gdalinfo_reports_cog_layout_and_overviews(run_dir: Path) -> None:
 
 def test_tiles_keep_their_pixels_masks_and_acquisition_time(run_dir: Path,
                                                              samples_dir: Path) -> None:
-    """The COG copy is lossless: tile pixels equal the aligned raster's window."""
+    """The COG copy is lossless: tile pixels (resampled once, tile by tile, from the original
+    flight) equal the kept whole-flight aligned raster's window."""
     with rasterio.open(run_dir / "tiles" / "PA3" / "r001_c002.tif") as t, \
             rasterio.open(run_dir / "aligned" / "PA3.tif") as a:
         win = a.window(*t.bounds)

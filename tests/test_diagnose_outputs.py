@@ -121,6 +121,21 @@ def test_run_diagnose_on_run_folder(uav, tmp_path):
     doc = json.loads((tmp_path / "diagnosis" / "diagnosis.json").read_text())
     assert doc["grid"]["transform"] == list(sat_t)[:6]
 
+    # resumable: a rerun with nothing changed reuses the flight's diagnosis (files
+    # untouched, same combined verdict) and says so; a changed input diagnoses it again
+    flight_dir = tmp_path / "diagnosis" / "F1"
+    stamps = {p: p.stat().st_mtime_ns for p in flight_dir.rglob("*") if p.is_file()}
+    assert len(stamps) > 5
+    again = run_diagnose(site, tmp_path)
+    assert again.record["skipped_current"] == 1
+    assert "1 of 1 flight diagnoses already current, skipped" in again.summary
+    assert {p: p.stat().st_mtime_ns for p in flight_dir.rglob("*") if p.is_file()} == stamps
+    assert set(again.outputs) >= {str(p.relative_to(tmp_path)) for p in stamps}
+    assert json.loads((tmp_path / "diagnosis" / "diagnosis.json").read_text()) == doc
+    write_json(tmp_path / "calibration.json", {"q": 2.1})
+    changed = run_diagnose(site, tmp_path).record
+    assert changed["skipped_current"] == 0 and changed["q_base"] == pytest.approx(2.1)
+
 
 def test_cli_standalone_and_errors(uav, tmp_path):
     """`geosim diagnose --uav --satellite` on GeoTIFFs in two different CRSs."""

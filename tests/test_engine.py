@@ -95,6 +95,47 @@ def test_make_engine_choices() -> None:
         make_engine(None, "somehost")
 
 
+def _thread_budget(_: int) -> tuple[int, int, int, int]:
+    """What a task sees: geosim's budget, scipy.fft's default workers (what geosim's FFT
+    kernels use), OpenCV's threads, the BLAS threads (threadpoolctl)."""
+    import cv2
+    import scipy.fft
+    from threadpoolctl import threadpool_info
+
+    from geosim.engine import task_threads
+
+    blas = max((p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"),
+               default=1)
+    return task_threads(), scipy.fft.get_workers(), cv2.getNumThreads(), blas
+
+
+def test_thread_budget_one_per_worker_every_core_in_process(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A task on a worker of a multi-process engine uses one thread for FFTs, OpenCV and
+    GDAL; in this process, every core; BLAS one thread everywhere (bit-identical sums).
+    Restored after the task. geosim's FFT kernels take scipy's default workers (the
+    budget) unless told otherwise."""
+    import inspect
+
+    import cv2
+    import scipy.fft
+
+    from geosim.degrade.core import SpectralDegrader, blur
+    from geosim.physics.otf import apply_transfer
+
+    for kernel in (blur, SpectralDegrader, apply_transfer):
+        assert inspect.signature(kernel).parameters["workers"].default is None, kernel
+    monkeypatch.delenv("GEOSIM_THREADS", raising=False)
+    cores = os.cpu_count() or 1
+    cv2_before, fft_before = cv2.getNumThreads(), scipy.fft.get_workers()
+    assert parallel_map(_thread_budget, [0]) == [(cores, cores, cores, 1)]
+    assert (cv2.getNumThreads(), scipy.fft.get_workers()) == (cv2_before, fft_before)
+    with open_engine(2):
+        assert parallel_map(_thread_budget, [0, 1, 2]) == [(1, 1, 1, 1)] * 3
+    monkeypatch.setenv("GEOSIM_THREADS", "1")
+    assert parallel_map(_thread_budget, [0]) == [(1, 1, 1, 1)]
+
+
 def test_in_process_map_keeps_order_and_errors() -> None:
     assert parallel_map(_square, [3, 1, 2]) == [9, 1, 4]
     with pytest.raises(InputFileError, match="tile -1.tif"):
@@ -151,7 +192,7 @@ def test_two_worker_cluster_gives_the_same_outputs_and_reruns_skip(
     record = _run(samples_dir / "site.toml", out, "--workers", "2", *_only(STEPS))
     engine = record["engine"]
     assert engine["kind"] == "local-cluster" and engine["workers"] == 2
-    assert len(engine["workers_used"]) == 2  # 3 aligned flights, 12 tiles: both got work
+    assert len(engine["workers_used"]) == 2  # 12 tiles, 3 calibrations: both got work
     want = output_digests(base)
     assert len(want) > 40
     assert differing(want, output_digests(out)) == []
@@ -159,8 +200,9 @@ def test_two_worker_cluster_gives_the_same_outputs_and_reruns_skip(
     # Nothing changed: the rerun skips every per-output task and says so.
     again = _run(samples_dir / "site.toml", out, "--workers", "2", *_only(STEPS))
     steps = again["steps"]
-    assert steps["align"]["summary"]["skipped_current"] == 3
+    assert steps["align"]["summary"]["skipped_current"] == 0  # no aligned/ rasters to skip
     assert steps["tiles"]["summary"]["skipped_current"] == 12
+    assert steps["labels"]["summary"]["skipped_current"] == 1
     assert steps["calibrate"]["summary"]["skipped_current"] == 3
     assert steps["degrade"]["summary"]["skipped_current"] == 12
     assert "12 of 12 already current, skipped" in steps["degrade"]["summary"]["text"]

@@ -384,3 +384,38 @@ def test_cli_missing_alignment_is_one_line_error(run, tmp_path):
     assert result.exit_code == 2
     assert "alignment.json" in result.output and "geosim align" in result.output
     assert not (run3 / "labels").exists()
+
+
+# ------------------------------------------------------------------------ resume
+
+
+def test_rerun_with_nothing_changed_skips_and_a_change_rebuilds(tmp_path):
+    """labels/ has a manifest entry: a rerun with the same inputs skips the step (says so,
+    same outputs, files untouched); a changed label file or correction rebuilds it."""
+    site, out = build_run(tmp_path)
+    first = run_labels(site, out, corrections=CORRECTIONS)
+    assert first.record["skipped_current"] == 0 and "skipped" not in first.summary
+    files = sorted(p for p in (out / "labels").rglob("*") if p.is_file())
+    stamps = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in files}
+
+    again = run_labels(site, out, corrections=CORRECTIONS)
+    assert again.record["skipped_current"] == 1
+    assert again.summary == first.summary + "; already current, skipped"
+    assert again.outputs == first.outputs
+    assert {k: v for k, v in again.record.items() if k != "skipped_current"} == \
+        json.loads(json.dumps({k: v for k, v in first.record.items()
+                               if k != "skipped_current"}))
+    assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in files} == stamps
+
+    moved = {k: Affine.translation(0.5, 0.0) * v for k, v in CORRECTIONS.items()}
+    assert run_labels(site, out, corrections=moved).record["skipped_current"] == 0
+    assert run_labels(site, out, corrections=moved).record["skipped_current"] == 1
+
+    txt = site.flights[0].labels / "PA1.txt"
+    txt.write_text(txt.read_text().splitlines(keepends=True)[0] * 2)  # a duplicate box
+    rebuilt = run_labels(site, out, corrections=moved)
+    assert rebuilt.record["skipped_current"] == 0
+
+    (out / "labels" / "cattle.geojson").unlink()  # an output gone: made again
+    assert run_labels(site, out, corrections=moved).record["skipped_current"] == 0
+    assert (out / "labels" / "cattle.geojson").is_file()

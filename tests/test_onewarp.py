@@ -165,17 +165,19 @@ def test_keep_intermediates_grid_copy_matches_the_aligned_reference(samples_dir,
 
 
 def test_thread_count_does_not_change_the_file(tmp_path, monkeypatch):
-    """GEOSIM_THREADS (OpenCV/GDAL threads) changes speed, never the bytes written."""
+    """The task's thread budget (OpenCV/GDAL threads) changes speed, never the bytes written."""
     import hashlib
+
+    from geosim.engine import task_limits
 
     _flight(tmp_path / "f.tif", dtype="uint8", fn=lambda x, y: 90 + 30 * np.sin(x * 3.0))
     w = ComposedWarp.for_flight(tmp_path / "f.tif", SITE, GRID,
                                 aligned_to_stated=~_rotation(0.2, X0 + 5, Y0 - 5))
     digests = []
     for n in ("1", "2"):
-        monkeypatch.setenv("GEOSIM_THREADS", n)
         path = tmp_path / f"t{n}.tif"
-        warp_raster_task(WarpRasterTask(w, str(path), tuple(GRID)[:6], (300, 300),
-                                        block_px=128))
+        with task_limits(int(n)):
+            warp_raster_task(WarpRasterTask(w, str(path), tuple(GRID)[:6], (300, 300),
+                                            block_px=128))
         digests.append(hashlib.sha256(path.read_bytes()).hexdigest())
     assert digests[0] == digests[1]

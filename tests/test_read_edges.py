@@ -19,7 +19,7 @@ from affine import Affine
 from rasterio.windows import Window
 
 from geosim.degrade.steps import _grey_reader
-from geosim.io.raster import RasterData, image_band_indexes
+from geosim.io.raster import RasterData
 from geosim.overlay.check import common_grid, read_on_grid
 from geosim.prepare.anchor import read_area_averaged, read_averaged_window
 from tests.helpers import textured_rgb, write_raster
@@ -104,9 +104,12 @@ def test_calibrate_grey_window_is_georeferenced(uav_tif: Path, tmp_path: Path) -
     partly outside the raster; georeference and pixels as gdal_translate -srcwin."""
     row0, col0 = 100, 150
     r, c, h, w = -140, 120, 180, 130   # raster rows -40..140, cols 270..400 (cols > 360 out)
-    with rasterio.open(uav_tif) as ds:
-        data = _grey_reader(ds, image_band_indexes(ds), row0, col0, None)(r, c, h, w)
-        empty = _grey_reader(ds, image_band_indexes(ds), row0, col0, None)(500, 0, 20, 20)
+    from geosim.prepare.aligned import AlignedFlight
+
+    # the reader takes a flight on the aligned grid (here: a stored raster on that grid)
+    with AlignedFlight.from_raster("F", uav_tif).open() as ds:
+        data = _grey_reader(ds, row0, col0, None)(r, c, h, w)
+        empty = _grey_reader(ds, row0, col0, None)(500, 0, 20, 20)
     assert data.array.shape == (1, h, w) and data.band_names == ("grey",)
     _assert_same_transform(data.transform, Affine(
         0.05, 0.0, 250000.0 + 0.05 * (col0 + c), 0.0, -0.05, 6190000.0 - 0.05 * (row0 + r)))

@@ -71,9 +71,9 @@ def test_grey_and_grey_alpha_flights_and_satellite_run_end_to_end(samples_dir: P
     run = json.loads((out / "run.json").read_text())
     assert run["status"] == "ok"
     assert all(s["status"] == "ok" for s in run["steps"].values())
-    # flights are resampled once, onto the aligned grid (grid/<flight>.tif is not kept)
-    with rasterio.open(out / "aligned" / "PA1.tif") as a, \
-            rasterio.open(out / "aligned" / "PA2.tif") as b, \
+    # flights are resampled once, tile by tile (no grid/ or aligned/ copy is kept)
+    with rasterio.open(sorted((out / "tiles" / "PA1").glob("*.tif"))[0]) as a, \
+            rasterio.open(sorted((out / "tiles" / "PA2").glob("*.tif"))[0]) as b, \
             rasterio.open(out / "grid" / "satellite.tif") as s:
         assert (a.count, b.count, s.count) == (1, 1, 1)  # alpha became the mask
     q = run["steps"]["calibrate"]["summary"]

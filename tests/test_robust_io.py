@@ -31,7 +31,7 @@ def test_full_disk_during_a_run_is_one_line_naming_the_file(samples_dir: Path,
     site = copy_site(samples_dir, tmp_path / "site")
     out = tmp_path / "run"
     result = run_cli("run", site, "--out", out,
-                     preexec_fn=_limit_file_size(1_000_000))
+                     preexec_fn=_limit_file_size(300_000))  # a 500 px tile is ~550 kB
     line = assert_one_line_error(result, "cannot be written", str(out))
     assert "free disk space" in line
     leftovers = [p for p in out.rglob("*") if ".part" in p.name]
@@ -74,9 +74,9 @@ def test_truncated_file_in_the_run_folder_is_one_line(samples_dir: Path, tmp_pat
     site = copy_site(samples_dir, tmp_path / "site")
     out = tmp_path / "run"
     first = run_cli("run", site, "--out", out, "--only", "grid", "--only", "footprints",
-                    "--only", "align")
+                    "--only", "align", "--only", "tiles")
     assert first.code == 0, first.stderr[-2000:]
-    aligned = out / "aligned" / "PA2.tif"
-    os.truncate(aligned, aligned.stat().st_size // 2)
-    result = run_cli("run", site, "--out", out, "--only", "tiles")
-    assert_one_line_error(result, "PA2.tif", "truncated or corrupt", "rerun the step")
+    tile = sorted((out / "tiles" / "PA2").glob("*.tif"))[0]
+    os.truncate(tile, tile.stat().st_size // 2)
+    result = run_cli("degrade", site, "--out", out, "--q", "2", "--workers", "1")
+    assert_one_line_error(result, tile.name, "truncated or corrupt", "rerun the step")

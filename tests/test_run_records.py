@@ -102,9 +102,9 @@ def test_interrupted_step_is_recorded_interrupted_and_its_partial_outputs_cleane
     run_pipeline(site, out, only=["tiles"], **QUIET)
     run_pipeline(site, out, only=["degrade"], options={"degrade": {"q": 2.0}}, **QUIET)
 
-    import geosim.prepare.tiles as prep  # the tile tasks call prepare.tiles.write_tile
+    import geosim.prepare.tiles as prep  # the tile tasks write through prepare.tiles.create_geotiff
 
-    real = prep.write_tile
+    real = prep.create_geotiff
     calls = {"n": 0}
 
     def write_then_interrupt(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
@@ -116,7 +116,7 @@ def test_interrupted_step_is_recorded_interrupted_and_its_partial_outputs_cleane
     # The interruption is an event, not a time: the 4th tile write raises in this process
     # (the default in-process engine runs the tile tasks one after the other), so exactly
     # 3 tiles are finished before it, however loaded the machine is.
-    monkeypatch.setattr(prep, "write_tile", write_then_interrupt)
+    monkeypatch.setattr(prep, "create_geotiff", write_then_interrupt)
     site60 = _with_tile_px(site, 60)
     with pytest.raises(KeyboardInterrupt):
         run_pipeline(site60, out, only=["tiles", "pairs"], **QUIET)
@@ -135,7 +135,7 @@ def test_interrupted_step_is_recorded_interrupted_and_its_partial_outputs_cleane
     assert len(partial) == 3 and sorted(partial) == on_disk, (partial, on_disk)
 
     # a rerun with the old tile_px removes the partial 60 px tiles it does not write
-    monkeypatch.setattr(prep, "write_tile", real)
+    monkeypatch.setattr(prep, "create_geotiff", real)
     record = run_pipeline(site, out, only=["tiles"], **QUIET)
     assert record["status"] == "ok" and _tile_sizes(out / "tiles") == {120}
 

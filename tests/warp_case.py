@@ -139,6 +139,7 @@ def make_case(realdata: Path, folder: Path, *, amplitude_px: float = 2.5,
         "[site]", 'name = "local warp case"', f'crs = "{site_crs}"', 'reference_flight = "REF"',
         "[parameters]", f"uav_gsd_m = {GSD_M}", "sat_gsd_m = 0.5", "tile_px = 500",
         "align_window_px = 1024", f'align_model = "{align_model}"',
+        "keep_intermediates = true",  # aligned/ kept: the tests read whole aligned rasters
         "[[flights]]", 'id = "REF"', f'image = "{ref_path.name}"',
         'acquired = "2021-07-15T11:00:00+10:00"',
         "[[flights]]", 'id = "MOV"', f'image = "{case.mov_path.name}"',

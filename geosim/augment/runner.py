@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import time
 import zlib
 from dataclasses import dataclass
@@ -45,7 +44,7 @@ from geosim.augment.io import (
 from geosim.augment.pipeline import AugImage, AugmentResult, Pipeline, flatten_records
 from geosim.engine import parallel_map
 from geosim.errors import OutputError, RasterError
-from geosim.io.atomic import write_json, write_text
+from geosim.io.atomic import json_default, write_json, write_text
 from geosim.io.paths import safe_name
 from geosim.io.raster import provenance_tags
 from geosim.rundir import RunDir
@@ -138,6 +137,98 @@ def augment_pair_task(task: AugmentPairTask) -> AugmentPairDone:
     return AugmentPairDone(manifest, params_rows, counts)
 
 
+def _plain(obj: Any) -> Any:
+    """:func:`~geosim.io.atomic.json_default`, but a float32 keeps its short text (as the
+    CSV writer printed it before the JSON round trip of the resume entries)."""
+    if isinstance(obj, np.floating) and not isinstance(obj, np.float64):
+        return float(str(obj))
+    return json_default(obj)
+
+
+def _pair_key(task: AugmentPairTask) -> tuple[str, list[Path], dict[str, Any]]:
+    """Manifest key, input files and parameters of one pair's outputs."""
+    import dataclasses
+
+    inputs = [p for p in tile_and_label_paths(task.run_dir, task.row, task.resolution)
+              if p.is_file()]
+    params = {"step": "augment", "pipeline": task.pipeline.to_dict(), "n": task.n,
+              "seed": task.seed, "resolution": task.resolution, "fmt": task.fmt,
+              "row": dataclasses.asdict(task.row), "run_dir": str(Path(task.run_dir).resolve())}
+    return f"pairs/{safe_name(task.row.pair_id)}", inputs, params
+
+
+def _row_files(out: Path, rows: list[dict[str, Any]]) -> list[Path]:
+    return [out / str(r[k]) for r in rows for k in ("path_a", "path_b", "labels_a",
+                                                     "labels_b", "meta")]
+
+
+@dataclass(frozen=True)
+class ResumedPair:
+    """A pair's outputs and whether they were reused (current in the manifest)."""
+
+    done: AugmentPairDone
+    skipped: bool
+
+
+def resumable_pair_task(task: AugmentPairTask) -> ResumedPair:
+    """:func:`augment_pair_task`, skipped when the pair's outputs are current.
+
+    The entry (in ``OUT/.geosim/manifest/pairs/``) records the pair's tiles and label
+    files, the pipeline, ``n``, seed, resolution and format, and the files written; the
+    rows and counts are kept in it, so a skipped pair reports the same as a fresh one.
+    """
+    from geosim import manifest
+
+    key, inputs, params = _pair_key(task)
+    entry = manifest.cached(task.out, key, inputs, params,
+                            outputs=_recorded(task.out, key))
+    if entry is not None and isinstance(entry.get("result"), dict):
+        r = entry["result"]
+        return ResumedPair(AugmentPairDone(r["manifest_rows"], r["params_rows"], r["counts"]),
+                           skipped=True)
+    done = augment_pair_task(task)
+    result = json.loads(json.dumps({"manifest_rows": done.manifest_rows,
+                                    "params_rows": done.params_rows,
+                                    "counts": done.counts}, default=_plain))
+    manifest.record(task.out, key, inputs, params,
+                    outputs=_row_files(task.out, result["manifest_rows"]), result=result)
+    return ResumedPair(AugmentPairDone(result["manifest_rows"], result["params_rows"],
+                                       result["counts"]), skipped=False)
+
+
+def _recorded(out: Path, key: str) -> list[Path]:
+    from geosim import manifest
+
+    try:
+        entry = json.loads((out / manifest.MANIFEST_DIR / f"{key}.json").read_text())
+        return [out / rel for rel in entry["outputs"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
+def _remove_unlisted(out: Path, rows: list[dict[str, Any]], *, overwrite: bool) -> int:
+    """Remove earlier outputs this run did not write or reuse; returns how many.
+
+    With ``overwrite``: every file in images/, labels/ and meta/ (what ``--overwrite``
+    replaces). Without: only files an earlier (interrupted) run recorded in the manifest.
+    """
+    from geosim import manifest
+
+    keep = {p.resolve() for p in _row_files(out, rows)}
+    if overwrite:
+        candidates = [p for sub in ("images", "labels", "meta") if (out / sub).is_dir()
+                      for p in (out / sub).rglob("*")]
+    else:
+        candidates = [p for e in sorted((out / manifest.MANIFEST_DIR / "pairs").glob("*.json"))
+                      for p in _recorded(out, f"pairs/{e.stem}")]
+    removed = 0
+    for p in sorted(set(candidates)):
+        if p.is_file() and p.resolve() not in keep:
+            p.unlink()
+            removed += 1
+    return removed
+
+
 def check_augment_out(out: Path, overwrite: bool) -> None:
     """Refuse an --out folder holding augmented pairs unless ``overwrite`` (OutputError)."""
     manifest_path = out / "augmented_pairs.csv"
@@ -185,9 +276,6 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
     out = Path(out_dir)
     manifest_path = out / "augmented_pairs.csv"
     check_augment_out(out, overwrite)
-    if overwrite:
-        for sub in ("images", "labels", "meta"):
-            shutil.rmtree(out / sub, ignore_errors=True)
     rows = read_pairs(pairs_csv)
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % (2**63))
@@ -198,12 +286,18 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
     t0 = time.perf_counter()
     tasks = [AugmentPairTask(run_dir, out, row, pipeline, n=n, seed=seed,
                              resolution=resolution, fmt=fmt) for row in rows]
-    for done in parallel_map(augment_pair_task, tasks, desc="augment pairs"):
+    n_skipped = reused_rows = 0
+    for resumed in parallel_map(resumable_pair_task, tasks, desc="augment pairs"):
+        done = resumed.done
+        n_skipped += resumed.skipped
+        reused_rows += len(done.manifest_rows) if resumed.skipped else 0
         manifest.extend(done.manifest_rows)
         params_rows.extend(done.params_rows)
         for key, value in done.counts.items():
             counts[key] += value
     seconds = time.perf_counter() - t0
+    # earlier outputs this run did not make (an interrupted run's, or --overwrite's)
+    _remove_unlisted(out, manifest, overwrite=overwrite)
     columns = ["aug_id", "pair_id", "index", "seed", "length_scale",
                *pipeline.record_columns()]
     params_path = write_csv(out / "parameters.csv", columns, params_rows)
@@ -215,9 +309,10 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
         "pairs": len(rows), "outputs_per_pair": n, "augmented_pairs": len(manifest),
         "seed": seed, "resolution": resolution, "format": fmt, **counts,
         "seconds": round(seconds, 3),
-        "pairs_per_second": round(len(manifest) / seconds, 3) if seconds > 0 else None,
+        "pairs_per_second": (round((len(manifest) - reused_rows) / seconds, 3)
+                             if seconds > 0 else None),
         "out_dir": str(out), "manifest": str(manifest_path), "parameters": str(params_path),
-        "split": split,
+        "split": split, "skipped_current": n_skipped,
     }
     write_json(out / "augment.json", {**summary, "pairs_csv": str(pairs_csv),
                                       "config": pipeline.to_dict()})

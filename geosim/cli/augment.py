@@ -71,6 +71,9 @@ def augment(pairs_csv: Path | None, config_path: Path | None, n_per_pair: int, o
         rec.summary = (f"augmented {summary['pairs']} pairs × {summary['outputs_per_pair']} = "
                        f"{summary['augmented_pairs']} pairs ({summary['pairs_per_second']} "
                        f"pairs/s, seed {summary['seed']}) → {summary['out_dir']}")
+        if summary.get("skipped_current"):
+            rec.summary += (f"; {summary['skipped_current']} of {summary['pairs']} pairs "
+                            "already current, skipped")
     click.echo(rec.summary)
     click.echo(f"boxes: {summary['boxes_in']} in, {summary['boxes_out']} out, "
                f"{summary['boxes_dropped']} dropped (barely visible); "

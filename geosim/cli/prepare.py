@@ -33,9 +33,10 @@ def grid(site_file: Path, out: Path) -> None:
 @OUT_OPTION
 @ANCHOR_OPTION
 def align(site_file: Path, out: Path, anchor: str | None) -> None:
-    """Register flights to the reference flight and resample them (needs 'geosim grid').
+    """Register flights to the reference flight (needs 'geosim grid').
 
-    Writes DIR/alignment.json, DIR/aligned/<flight>.tif and alignment_check.geojson.
+    Writes DIR/alignment.json (each flight's correction and composed warp) and
+    alignment_check.geojson; DIR/aligned/<flight>.tif only with keep_intermediates = true.
     """
     run_steps(site_file, out, ("align",), anchor=anchor)
 
@@ -45,7 +46,7 @@ def align(site_file: Path, out: Path, anchor: str | None) -> None:
 @SITE_ARG
 @OUT_OPTION
 def tile(site_file: Path, out: Path) -> None:
-    """Cut aligned flights into tiles and list patch pairs (needs 'geosim align').
+    """Resample aligned tiles once from the flights and list patch pairs (needs 'geosim align').
 
     Writes DIR/tiles/<flight>/<tile_id>.tif, tiles/index.geojson and pairs.csv.
     """

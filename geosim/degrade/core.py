@@ -246,7 +246,7 @@ def optics_otf_dct(shape: tuple[int, int], *, q: float, phi: int, obscuration: f
 # ----------------------------------------------------------------------- blur
 
 def blur(image: np.ndarray, *, q: float, phi: int = 10, obscuration: float = 0.0,
-         workers: int = -1) -> np.ndarray:
+         workers: int | None = None) -> np.ndarray:
     """Convolve each band with the full Airy PSF of ``q`` (symmetric boundary, exact).
 
     Parameters
@@ -494,7 +494,7 @@ class SpectralDegrader:
 
     def __init__(self, image: np.ndarray, *, phi: int = 10, q_min: float,
                  valid: np.ndarray | None = None, obscuration: float = 0.0,
-                 workers: int = -1) -> None:
+                 workers: int | None = None) -> None:
         self.phi = _check_phi(phi)
         self.q_min = _check_q(q_min)
         self.obscuration = _check_obscuration(obscuration)

@@ -2,8 +2,9 @@
 
 ``run_calibrate(site, out)``
     Reads ``grid/satellite.tif`` (the satellite scene on the shared 0.5 m grid)
-    and ``aligned/<flight>.tif`` (each flight on the aligned 0.05 m grid, nested
-    in the same origin family). For each flight, over its common extent with
+    and each flight on the aligned 0.05 m grid (nested in the same origin family),
+    resampled once on the fly from the original file through its composed warp
+    (:mod:`geosim.prepare.aligned`). For each flight, over its common extent with
     the satellite (both valid), it measures the satellite's Laplacian variance,
     the LV of the degraded flight as a function of Q, and solves for the Q
     where they are equal. Writes ``calibration.json`` and ``calibration.png``.
@@ -16,8 +17,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import pickle
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,12 +54,12 @@ from geosim.io.raster import (
     open_raster,
     provenance_tags,
     read_raster,
-    read_valid_mask,
     read_window,
     write_geotiff,
 )
 from geosim.manifest import skip_text
 from geosim.physics.psf import first_zero_px
+from geosim.prepare.aligned import AlignedFlight, AlignedReader, aligned_flights, flight_inputs
 from geosim.prepare.grid import sat_grid_offset
 from geosim.result import StepResult
 from geosim.rundir import RunDir, RunPath
@@ -84,9 +87,10 @@ LV_DEFINITION = (
 
 # --------------------------------------------------------------------------- helpers
 
-def _grey_reader(ds: rasterio.DatasetReader, bands: list[int], row0: int, col0: int,
-                 dn_max: float | None) -> GreyWindowReader:
-    """Reader of grey windows relative to (row0, col0) of ``ds``; outside = invalid.
+def _grey_reader(ds: AlignedReader, row0: int, col0: int, dn_max: float | None
+                 ) -> GreyWindowReader:
+    """Reader of grey windows relative to (row0, col0) of an aligned flight; outside =
+    invalid.
 
     Each window comes back as a one-band :class:`RasterData` (``"grey"``) with the
     window's transform (:data:`geosim.degrade.calibrate.GreyWindowReader`).
@@ -99,16 +103,15 @@ def _grey_reader(ds: rasterio.DatasetReader, bands: list[int], row0: int, col0: 
         a0, b0 = max(rr, 0), max(cc, 0)
         a1, b1 = min(rr + h, ds.height), min(cc + w, ds.width)
         out = RasterData(array=grey, valid=valid,
-                         transform=ds.window_transform(Window(cc, rr, w, h)), crs=ds.crs,
+                         transform=ds.transform @ Affine.translation(cc, rr), crs=ds.crs,
                          band_names=("grey",), path=Path(ds.name))
         if a1 <= a0 or b1 <= b0:
             return out
         for s0 in range(a0, a1, _GREY_CHUNK_ROWS):
             s1 = min(s0 + _GREY_CHUNK_ROWS, a1)
-            win = Window(b0, s0, b1 - b0, s1 - s0)
-            data = ds.read(bands, window=win)
+            data, ok = ds.read(Window(b0, s0, b1 - b0, s1 - s0))
             grey[0, s0 - rr:s1 - rr, b0 - cc:b1 - cc] = to_grey(data, dn_max=dn_max)
-            valid[s0 - rr:s1 - rr, b0 - cc:b1 - cc] = read_valid_mask(ds, win)
+            valid[s0 - rr:s1 - rr, b0 - cc:b1 - cc] = ok
         return out
 
     return read
@@ -145,10 +148,13 @@ def plausibility_warning(q: float, *, what: str = "calibrated Q") -> str | None:
 
 # --------------------------------------------------------------------------- calibrate
 
-def calibrate_flight(flight_id: str, flight_path: Path, sat: rasterio.DatasetReader, *,
-                     phi: int, q_min: float, q_max: float, obscuration: float = 0.0,
+def calibrate_flight(flight_id: str, flight: AlignedFlight | Path, sat: rasterio.DatasetReader,
+                     *, phi: int, q_min: float, q_max: float, obscuration: float = 0.0,
                      n_curve: int = N_CURVE_SAMPLES, xtol: float = 1e-4) -> dict[str, Any]:
     """Calibrate one flight against the satellite scene (opened, on the shared grid).
+
+    ``flight`` is the flight on the aligned grid (read through its composed warp), or the
+    path of a raster on the aligned grid.
 
     Returns
     -------
@@ -157,7 +163,12 @@ def calibrate_flight(flight_id: str, flight_path: Path, sat: rasterio.DatasetRea
         ``lv_at_q``, the LV curve, the area used and its window on the satellite grid.
     """
     what = f"flight {flight_id}"
-    with open_raster(flight_path, what=f"aligned {what}") as ds:
+    if not isinstance(flight, AlignedFlight):
+        with open_raster(flight, what=f"aligned {what}"):
+            pass  # a one-line error for a missing or unreadable raster
+        flight = AlignedFlight.from_raster(flight_id, flight)
+    flight_path = flight.path or flight.warp.src_path
+    with flight.open() as ds:
         if ds.crs != sat.crs:
             raise RasterError(f"aligned {what} ({flight_path}) is in {ds.crs}, the satellite "
                               f"grid in {sat.crs}; re-run 'geosim grid' and 'geosim align'")
@@ -165,17 +176,19 @@ def calibrate_flight(flight_id: str, flight_path: Path, sat: rasterio.DatasetRea
         rows_s, cols_s = ds.height // phi, ds.width // phi
         r0, c0 = max(row_off, 0), max(col_off, 0)
         r1, c1 = min(row_off + rows_s, sat.height), min(col_off + cols_s, sat.width)
-        result: dict[str, Any] = {"flight": flight_id, "aligned": flight_path.name}
+        result: dict[str, Any] = {
+            "flight": flight_id,
+            "aligned": (Path(flight.path).name if flight.path is not None else
+                        f"{Path(flight_path).name}, resampled once onto the aligned grid")}
         if r1 <= r0 or c1 <= c0:
             return {**result, "status": "no_overlap",
                     "reason": "the flight does not overlap the satellite scene"}
         window = Window(c0, r0, c1 - c0, r1 - r0)
         sat_data = read_window(sat, window)
         sat_grey, sat_valid = to_grey(sat_data.array), sat_data.valid
-        bands = image_band_indexes(ds)
-        dtype = ds.dtypes[bands[0] - 1]
-        offset = quantization_lv(_quantization_step_grey(dtype), bands=len(bands))
-        reader = _grey_reader(ds, bands, (r0 - row_off) * phi, (c0 - col_off) * phi, None)
+        dtype = ds.dtype
+        offset = quantization_lv(_quantization_step_grey(dtype), bands=ds.count)
+        reader = _grey_reader(ds, (r0 - row_off) * phi, (c0 - col_off) * phi, None)
         n_blocks = math.ceil((r1 - r0) / BLOCK_SAT_PX) * math.ceil((c1 - c0) / BLOCK_SAT_PX)
         with tqdm(total=n_blocks, desc=f"calibrate {flight_id}", unit="block",
                   disable=None, leave=False) as bar:
@@ -214,7 +227,7 @@ class CalibrateTask:
 
     out_dir: Path
     flight: str
-    flight_path: Path
+    aligned: AlignedFlight
     sat_path: Path
     phi: int
     q_min: float
@@ -232,15 +245,17 @@ class CalibrateDone:
 def calibrate_task(task: CalibrateTask) -> CalibrateDone:
     """Calibrate one flight (:func:`calibrate_flight`), or reuse its current record."""
     key = f"calibration/{task.flight}"
-    inputs = [task.flight_path, task.sat_path]
+    inputs = [*flight_inputs(task.aligned), task.sat_path]
     params = {"step": "calibrate", "flight": task.flight, "phi": task.phi,
+              "aligned_sha256": hashlib.sha256(pickle.dumps(task.aligned, protocol=4)
+                                               ).hexdigest(),
               "q_min": task.q_min, "q_max": task.q_max, "n_curve": N_CURVE_SAMPLES,
               "block_sat_px": BLOCK_SAT_PX, "margin_sat_px": MARGIN_SAT_PX}
     entry = manifest.cached(task.out_dir, key, inputs, params)
     if entry is not None and isinstance(entry.get("result"), dict):
         return CalibrateDone(entry["result"], skipped=True)
     with open_raster(task.sat_path, what="satellite scene on the shared grid") as sat:
-        result = calibrate_flight(task.flight, task.flight_path, sat, phi=task.phi,
+        result = calibrate_flight(task.flight, task.aligned, sat, phi=task.phi,
                                   q_min=task.q_min, q_max=task.q_max)
     # Through JSON now, so that a fresh and a reused record are the same values.
     result = to_jsonable(result)
@@ -256,7 +271,8 @@ def run_calibrate(site: SiteConfig, out: RunPath) -> StepResult:
     site
         The validated site (its ``parameters`` give φ, ``q_min`` and ``q_max``).
     out
-        Run folder holding ``grid/satellite.tif`` and ``aligned/<flight>.tif``.
+        Run folder holding ``grid/satellite.tif``, ``grid/grid.json`` and
+        ``alignment.json`` (the flights are read through their composed warps).
 
     Returns
     -------
@@ -277,13 +293,13 @@ def run_calibrate(site: SiteConfig, out: RunPath) -> StepResult:
         raise ConfigError(f"site {site.name!r} has no [satellite] scene; calibration needs one "
                           "(add a [satellite] table with the image path)")
     sat_path = run.require_satellite_grid()
-    paths = {f.id: run.require_aligned(f.id) for f in site.flights}
+    flights_on_grid = aligned_flights(site, run)
     start = time.perf_counter()
     with open_raster(sat_path, what="satellite scene on the shared grid") as sat:
         if not image_band_indexes(sat):
             raise RasterError(f"{sat_path}: no image bands")
-    tasks = [CalibrateTask(run.root, fid, path, sat_path, phi=p.phi, q_min=p.q_min,
-                           q_max=p.q_max) for fid, path in paths.items()]
+    tasks = [CalibrateTask(run.root, fid, flight, sat_path, phi=p.phi, q_min=p.q_min,
+                           q_max=p.q_max) for fid, flight in flights_on_grid.items()]
     done = parallel_map(calibrate_task, tasks, desc="calibrate")
     flights = [d.result for d in done]
     n_skipped = sum(d.skipped for d in done)

@@ -1,7 +1,8 @@
 """File layer of the diagnosis: read grids, build the baseline, run, write.
 
 * :func:`run_diagnose` — pipeline step: reads ``out_dir/grid/satellite.tif``
-  (0.5 m shared grid), ``out_dir/aligned/<flight>.tif`` (0.05 m) of every flight and
+  (0.5 m shared grid), every flight on the aligned 0.05 m grid (read through its composed
+  warp from the original file, :mod:`geosim.prepare.aligned`) and
   ``out_dir/calibration.json``; writes ``out_dir/diagnosis/``.
 * :func:`diagnose_images` — standalone: any-CRS UAV and satellite GeoTIFFs are
   reprojected onto a shared nested grid (UAV ``phi`` × finer) over their common
@@ -40,6 +41,7 @@ from geosim.diagnose.report import DEFAULT_DPI, write_diagnosis
 from geosim.diagnose.simulate import QSimulator
 from geosim.engine import parallel_map
 from geosim.errors import DiagnosisError, ExtentError
+from geosim.io.atomic import to_jsonable
 from geosim.io.paths import safe_name, unique_name
 from geosim.io.raster import RasterData, open_raster, read_valid_mask, read_window
 from geosim.physics.radiometry import luma
@@ -231,22 +233,76 @@ class DiagnoseFlightTask:
     q_min: float
     q_max: float
     dpi: int = DEFAULT_DPI
+    #: Resumable when set: (run folder, the files ``load`` reads) — a rerun with the same
+    #: inputs and parameters reuses the flight's diagnosis instead of making it again.
+    resume: tuple[Path, tuple[Path, ...]] | None = None
+
+
+def _diagnose_one(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
+    try:
+        doc = diagnose_grids(task.load(), task.out_dir, phi=task.phi, seed=task.seed,
+                             q_min=task.q_min, q_max=task.q_max,
+                             extra={"flight": task.flight}, dpi=task.dpi)
+    except (DiagnosisError, ExtentError) as exc:
+        return None, str(exc)
+    # through JSON (NaN kept), so that a fresh and a reused diagnosis are the same values
+    return to_jsonable(doc), None
 
 
 def diagnose_flight_task(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
     """Diagnose one flight into ``task.out_dir``: (diagnosis.json dict, None), or
-    (None, why) when it cannot be diagnosed (too little overlap, no usable data)."""
+    (None, why) when it cannot be diagnosed (too little overlap, no usable data).
+
+    With ``task.resume`` the flight's diagnosis is skipped when its manifest entry is
+    current (same input files, parameters and output files); the dict then comes from
+    the entry (``"skipped": true`` is not added: callers count skips with
+    :func:`diagnosis_was_current`).
+    """
+    if task.resume is None:
+        return _diagnose_one(task)
+    from geosim import manifest
+
+    run_dir, inputs = task.resume
+    key = f"diagnosis/{task.out_dir.name}/flight"
+    params = {"step": "diagnose", "flight": task.flight, "phi": task.phi, "seed": task.seed,
+              "q_min": task.q_min, "q_max": task.q_max, "dpi": task.dpi,
+              "dir": task.out_dir.name, "max_sat_px": MAX_SAT_PX}
+    recorded = _recorded_files(run_dir, key)
+    entry = manifest.cached(run_dir, key, inputs, params, outputs=recorded)
+    if entry is not None and recorded and isinstance(entry.get("result"), dict):
+        return entry["result"], _CURRENT
+    doc, why = _diagnose_one(task)
+    if doc is not None:
+        outputs = sorted(p for p in task.out_dir.rglob("*") if p.is_file())
+        manifest.record(run_dir, key, inputs, params, outputs=outputs, result=doc)
+    return doc, why
+
+
+#: ``why`` of a diagnosis reused from the manifest (the dict is returned with it).
+_CURRENT = "already current"
+
+
+def diagnosis_was_current(result: tuple[dict[str, Any] | None, str | None]) -> bool:
+    """Whether :func:`diagnose_flight_task` reused a current diagnosis."""
+    return result[0] is not None and result[1] == _CURRENT
+
+
+def _recorded_files(run_dir: Path, key: str) -> list[Path]:
+    """The output files a manifest entry lists (to check they are still those files)."""
+    from geosim import manifest
+
     try:
-        return diagnose_grids(task.load(), task.out_dir, phi=task.phi, seed=task.seed,
-                              q_min=task.q_min, q_max=task.q_max,
-                              extra={"flight": task.flight}, dpi=task.dpi), None
-    except (DiagnosisError, ExtentError) as exc:
-        return None, str(exc)
+        entry = json.loads((Path(run_dir) / manifest.MANIFEST_DIR / f"{key}.json").read_text())
+        return [Path(run_dir) / rel for rel in entry["outputs"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
 
 
 def diagnose_flights(loaders: list[tuple[str, Callable[[], FlightPixels]]], out_dir: Path, *,
                      reference: str | None, phi: int, seed: int = 0, q_min: float = 0.5,
-                     q_max: float = 8.0, dpi: int = DEFAULT_DPI) -> dict[str, Any]:
+                     q_max: float = 8.0, dpi: int = DEFAULT_DPI,
+                     resume: dict[str, tuple[Path, tuple[Path, ...]]] | None = None,
+                     counts: dict[str, int] | None = None) -> dict[str, Any]:
     """Diagnose several flights one at a time and write the combined verdict.
 
     Parameters
@@ -259,6 +315,11 @@ def diagnose_flights(loaders: list[tuple[str, Callable[[], FlightPixels]]], out_
     reference
         The flight whose GeoTIFFs, maps and plots are copied to the top level (default,
         or when it was skipped: the first diagnosed flight).
+    resume
+        Per flight, (run folder, the files its ``load`` reads): its diagnosis is reused
+        when current (:func:`diagnose_flight_task`).
+    counts
+        Filled with ``skipped_current``: flights whose diagnosis was reused.
 
     Returns
     -------
@@ -272,10 +333,13 @@ def diagnose_flights(loaders: list[tuple[str, Callable[[], FlightPixels]]], out_
     skipped: dict[str, str] = {}
     taken: set[str] = set()
     tasks = [DiagnoseFlightTask(fid, load, out_dir / _flight_dir(fid, taken), phi=phi,
-                                seed=seed + 1000 * i, q_min=q_min, q_max=q_max, dpi=dpi)
+                                seed=seed + 1000 * i, q_min=q_min, q_max=q_max, dpi=dpi,
+                                resume=(resume or {}).get(fid))
              for i, (fid, load) in enumerate(loaders)]
-    for task, (doc, why) in zip(tasks, parallel_map(diagnose_flight_task, tasks,
-                                                    desc="diagnose flights"), strict=True):
+    results = parallel_map(diagnose_flight_task, tasks, desc="diagnose flights")
+    if counts is not None:
+        counts["skipped_current"] = sum(map(diagnosis_was_current, results))
+    for task, (doc, why) in zip(tasks, results, strict=True):
         if doc is None:
             skipped[task.flight] = why or ""
         else:
@@ -303,11 +367,12 @@ def _read_q_base(path: Path, flight: str) -> float | None:
     return None
 
 
-def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> FlightPixels:
-    """The satellite window over one aligned flight and the flight's UAV pixels under it."""
-    uav_path = run.require_aligned(flight)
-    with open_raster(sat_path, what="satellite on grid") as ds, \
-            open_raster(uav_path, what=f"aligned flight {flight}") as du:
+def _read_flight(run: RunDir, sat_path: Path, aligned: Any, phi: int) -> FlightPixels:
+    """The satellite window over one aligned flight (a
+    :class:`geosim.prepare.aligned.AlignedFlight`) and the flight's UAV pixels under it."""
+    flight = aligned.flight
+    uav_path = aligned.path or aligned.warp.src_path
+    with open_raster(sat_path, what="satellite on grid") as ds, aligned.open() as du:
         row_off, col_off = sat_grid_offset(du.transform, ds.transform, phi,
                                            f"aligned flight {flight}")
         # satellite pixels fully inside the aligned flight's extent
@@ -326,7 +391,12 @@ def _read_flight(run: RunDir, sat_path: Path, flight: str, phi: int) -> FlightPi
         uwin = rasterio.windows.Window((win.col_off - col_off) * phi,
                                        (win.row_off - row_off) * phi,
                                        win.width * phi, win.height * phi)
-        uav = read_window(du, uwin, max_bands=3, out_dtype=np.float32, path=uav_path)
+        array, valid = du.read(uwin, n_bands=3)
+        uav = RasterData(array=array.astype(np.float32), valid=valid,
+                         transform=du.transform @ Affine.translation(int(uwin.col_off),
+                                                                     int(uwin.row_off)),
+                         crs=du.crs, band_names=tuple(du.descriptions[:array.shape[0]]),
+                         path=Path(uav_path))
     return FlightPixels(uav=uav, sat=sat, q_base=_read_q_base(run.calibration_json, flight),
                         sources=(str(sat_path), str(uav_path)))
 
@@ -343,11 +413,21 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
     reference = site.reference_flight if site.reference_flight else site.flights[0].id
     phi = site.parameters.phi
 
-    loaders = [(f.id, functools.partial(_read_flight, run, sat_path, f.id, phi))
-               for f in site.flights]
+    from geosim.prepare.aligned import aligned_flights
+
+    flights = aligned_flights(site, run)
+    loaders = [(fid, functools.partial(_read_flight, run, sat_path, flights[fid], phi))
+               for fid in flights]
+    resume = {fid: (run.root, _flight_inputs(run, sat_path, flights[fid])) for fid in flights}
+    counts: dict[str, int] = {}
     doc = diagnose_flights(loaders, run.diagnosis_dir, reference=reference, phi=phi,
-                           q_min=site.parameters.q_min, q_max=site.parameters.q_max, dpi=dpi)
+                           q_min=site.parameters.q_min, q_max=site.parameters.q_max, dpi=dpi,
+                           resume=resume, counts=counts)
     summary = _summary(doc, run.diagnosis_dir)
+    n_skipped = counts.get("skipped_current", 0)
+    if n_skipped:
+        summary["text"] += (f"; {n_skipped} of {len(site.flights)} flight diagnoses already "
+                            "current, skipped")
     # the bundled sample site ships its ground truth: put fitted and true side by side
     site_path = getattr(site, "path", None)
     truth_path = Path(site_path).parent / "truth.json" if site_path else None
@@ -367,9 +447,21 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
                      "satellite-minus-reference-flight offset in truth.json)\n")
     text = summary.pop("text")
     # the diagnosis writes many files (some through matplotlib): record those written now
+    # ... and those of the flights whose diagnosis was reused (still the recorded files)
+    reused = {p for d in (doc.get("flights") or {}).values() if isinstance(d, dict)
+              for p in _recorded_files(run.root, f"diagnosis/{d.get('dir')}/flight")}
     outputs = [run.rel(p) for p in sorted(run.diagnosis_dir.rglob("*"))
-               if p.is_file() and p.stat().st_mtime >= started - 1.0]
+               if p.is_file() and (p.stat().st_mtime >= started - 1.0 or p in reused)]
+    summary["skipped_current"] = n_skipped
     return StepResult(summary=text, outputs=outputs, record=summary)
+
+
+def _flight_inputs(run: RunDir, sat_path: Path, aligned: Any) -> tuple[Path, ...]:
+    """The files :func:`_read_flight` reads for a flight (its diagnosis' manifest inputs);
+    ``alignment.json`` too, for the flight's correction."""
+    files = [sat_path, *(Path(p) for p in aligned.sources)]
+    files += [p for p in (run.alignment_json, run.calibration_json) if p.is_file()]
+    return tuple(files)
 
 
 def diagnose_images(uav_paths: list[str | Path], satellite_path: str | Path,

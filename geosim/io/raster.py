@@ -197,9 +197,17 @@ def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
     require_crs
         Refuse a raster without a CRS (:func:`open_raster`).
     """
+    from rasterio.errors import RasterioError
+
     with open_raster(path, what=what, require_crs=require_crs) as ds:
-        return read_window(ds, window, bands=bands, max_bands=max_bands, out_dtype=out_dtype,
-                           boundless=boundless, path=path)
+        try:
+            return read_window(ds, window, bands=bands, max_bands=max_bands,
+                               out_dtype=out_dtype, boundless=boundless, path=path)
+        except RasterioError as exc:  # a block cut short: GDAL names the bytes, not the file
+            failure = read_failure(exc)
+            if failure is None:
+                raise
+            raise type(failure)(f"{path}: {failure}") from exc
 
 
 def geotiff_profile(*, width: int, height: int, count: int, dtype: str | np.dtype,

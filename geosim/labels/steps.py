@@ -29,6 +29,7 @@ write are never deleted.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import shutil
 import tempfile
@@ -44,6 +45,7 @@ import shapely
 from affine import Affine
 from pyproj import CRS, Transformer
 
+from geosim import manifest
 from geosim.config import SiteConfig
 from geosim.engine import parallel_map
 from geosim.errors import AlignmentError, InputFileError
@@ -320,28 +322,93 @@ def run_labels(site: SiteConfig, out: RunPath, *,
         Outputs written, per-flight counts (record ``flights``), ``cattle``.
     """
     run = RunDir.of(out)
-    params = site.parameters
     labelled = [f.id for f in site.flights if f.labels is not None]
     if not labelled:
         return StepResult(summary="no flight has labels in the site file; nothing written",
                           record={"cattle": 0, "flights": {}})
     grid = read_grid(run)
     tiles = find_tiles(run, labelled)
+    inputs, key_params = _resume_key(site, run, labelled, tiles, corrections, iou_threshold)
+    entry = manifest.cached(run.root, LABELS_KEY, inputs, key_params,
+                            outputs=_recorded_outputs(run))
+    if entry is not None and isinstance(entry.get("result"), dict):
+        done = entry["result"]
+        return StepResult(summary=done["summary"] + "; already current, skipped",
+                          outputs=list(done["outputs"]),
+                          record={**done["record"], "skipped_current": 1})
+    result = _build_labels(site, run, labelled, grid, tiles, corrections, iou_threshold)
+    manifest.record(run.root, LABELS_KEY, inputs, key_params,
+                    outputs=[run.root / rel for rel in result.outputs],
+                    result=json.loads(json.dumps({"summary": result.summary,
+                                                  "outputs": list(result.outputs),
+                                                  "record": result.record}, default=str)))
+    return dataclasses.replace(result, record={**result.record, "skipped_current": 0})
+
+
+#: Manifest key of the labels step (one entry: the folder is written all-or-nothing).
+LABELS_KEY = "labels/step"
+
+
+def _recorded_outputs(run: RunDir) -> list[Path]:
+    """The files the last labels run recorded (their stats must be unchanged to skip)."""
+    try:
+        entry = json.loads((run.root / manifest.MANIFEST_DIR / f"{LABELS_KEY}.json").read_text())
+        return [run.root / rel for rel in entry["result"]["outputs"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
+def _resume_key(site: SiteConfig, run: RunDir, labelled: list[str],
+                tiles: Mapping[str, list[Georef]], corrections: Mapping[str, Affine] | None,
+                iou_threshold: float) -> tuple[list[Path], dict[str, Any]]:
+    """What the labels are made from: input files and the parameters (for the manifest).
+
+    Tiles enter by their georeference (name, transform, size: what the YOLO boxes depend
+    on), not their pixels, so re-cut tiles with the same grid do not invalidate labels.
+    """
+    inputs = [p for p in (run.alignment_json, run.grid_json) if p.is_file()]
+    for fid in labelled:
+        src = site.flight(fid).labels
+        if src is not None and src.is_dir():
+            inputs += sorted(p for p in src.iterdir() if p.is_file())
+        elif src is not None:
+            inputs.append(src)
+        field = run.alignment_field(fid)
+        if field.is_file():
+            inputs.append(field)
+    p = site.parameters
+    key_params = {
+        "step": "labels", "phi": p.phi, "sat_gsd_m": p.sat_gsd_m,
+        "min_visible_fraction": p.min_visible_fraction, "iou_threshold": iou_threshold,
+        "flights": {fid: str(site.flight(fid).acquired) for fid in labelled},
+        "tiles": {fid: [[g.name, list(g.transform)[:6], g.width_px, g.height_px] for g in tl]
+                  for fid, tl in tiles.items()},
+        "corrections": None if corrections is None else
+        {k: list(v)[:6] for k, v in sorted(corrections.items())},
+    }
+    return inputs, key_params
+
+
+def _build_labels(site: SiteConfig, run: RunDir, labelled: list[str], grid: Any | None,
+                  tiles: dict[str, list[Georef]], corrections: Mapping[str, Affine] | None,
+                  iou_threshold: float) -> StepResult:
+    """Build and write ``labels/`` (the work of :func:`run_labels` when not current)."""
+    params = site.parameters
     crs = _site_crs(grid, tiles, run)
     base_dir = site.path.parent if site.path is not None else None
+    final = run.labels_dir
 
     # Read and validate everything before writing anything.
     stated = read_site_labels([site.flight(f) for f in labelled], crs, base_dir=base_dir)
     if corrections is None:
         corrections = load_corrections(run, labelled, grid)
     aligned = apply_corrections(stated, corrections)
-    aligned = apply_local_fields(aligned, out)  # align_model = "local" only
+    aligned = apply_local_fields(aligned, run.root)  # align_model = "local" only
     cattle = dedupe_labels(aligned, iou_threshold=iou_threshold)
     cattle = add_feature_attributes(cattle, sat_gsd_m=params.sat_gsd_m)
 
     per_flight: dict[str, dict[str, Any]] = {}
     # paths relative to labels/ (built in a staging folder, then swapped in)
-    final = run.labels_dir
     texts: dict[Path, str] = {run.classes_txt.relative_to(final):
                               "".join(f"{c}\n" for c in CLASS_NAMES)}
     uav_dir, sat_dir = (run.yolo_dir(r).relative_to(final) for r in ("uav", "0.5m"))

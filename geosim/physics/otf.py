@@ -134,7 +134,7 @@ def off_nadir_otf(fy: np.ndarray, fx: np.ndarray, *, sigma_px: float,
 
 
 def apply_transfer(image: np.ndarray, transfer: TransferFunction, *,
-                   pad_px: int | None = None, workers: int = -1) -> np.ndarray:
+                   pad_px: int | None = None, workers: int | None = None) -> np.ndarray:
     """Filter a 2-D image (or stack with bands first) by a real transfer function.
 
     The image is reflect-padded by ``pad_px`` (default: 1/8 of the larger side,

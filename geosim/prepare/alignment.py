@@ -52,9 +52,11 @@ north-west corner).
 
 from __future__ import annotations
 
+import functools
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -76,6 +78,9 @@ from geosim.io.raster import (
     read_window,
 )
 from geosim.prepare.grid import SiteGrid, snap_window_to_sat
+
+#: A raster path, or a reader ``window -> (grey float32, valid bool)``.
+GreySource = str | os.PathLike[str] | Callable[[Window], tuple[np.ndarray, np.ndarray]]
 
 # --------------------------------------------------------------------------- pure helpers
 
@@ -451,37 +456,86 @@ def local_field_stats(shifts_px: np.ndarray, confident: np.ndarray, gsd_m: float
     }
 
 
-def local_check(ref_path: str | os.PathLike[str], mov_path: str | os.PathLike[str], *,
-                window_px: int, block_px: int = 2048, min_confidence: float = 0.1,
-                progress: bool | None = None, what: str = "flight"
+def local_check(ref: GreySource, mov: GreySource, *, window_px: int, block_px: int = 2048,
+                min_confidence: float = 0.1, progress: bool | None = None,
+                what: str = "flight", shape: tuple[int, int] | None = None
                 ) -> list[dict[str, Any]]:
-    """Local shift field between two aligned rasters, block by block.
+    """Local shift field between two flights on the aligned grid, block by block.
+
+    ``ref`` and ``mov`` are each a raster path or a reader ``window -> (grey, valid)``
+    (e.g. :class:`geosim.prepare.onewarp.WarpedGreyReader`: a flight read through its
+    composed warp); ``shape = (rows, cols)`` of the grid is needed when ``ref`` is a reader.
 
     Returns one record per window: ``col``, ``row`` (window centre, aligned-grid
     corner coordinates), ``dx_px``, ``dy_px`` (moving content relative to the
     reference, x right, y down), ``confidence``.
     """
+    return local_checks(ref, {what: mov}, window_px=window_px, block_px=block_px,
+                        min_confidence=min_confidence, shape=shape)[what]
+
+
+@dataclass(frozen=True)
+class LocalCheckTask:
+    """One block of the local check: the reference and every other flight (an engine task)."""
+
+    ref: Any                                   # GreySource
+    movs: tuple[tuple[str, Any], ...]          # (flight, GreySource)
+    block: Window
+    window_px: int
+    min_confidence: float
+
+
+def local_check_task(task: LocalCheckTask) -> dict[str, list[dict[str, Any]]]:
+    """Run a :class:`LocalCheckTask`: the reference block is read once for all flights."""
     from geosim.align.local import local_shift_field
 
-    block = max(window_px, (block_px // window_px) * window_px)
-    with rasterio.open(ref_path) as ds:
-        width, height = ds.width, ds.height
-    records: list[dict[str, Any]] = []
-    blocks = list(iter_windows(width, height, block_px=block))
-    for blk in tqdm(blocks, desc=f"local check {what}", unit="block", leave=False,
-                    disable=None if progress is None else not progress):
-        if blk.width < window_px or blk.height < window_px:
-            continue
-        rg, rv = read_grey_window(ref_path, blk)
-        mg, mv = read_grey_window(mov_path, blk)
+    blk = task.block
+    rg, rv = _grey_source(task.ref)(blk)
+    out: dict[str, list[dict[str, Any]]] = {}
+    for fid, mov in task.movs:
+        mg, mv = _grey_source(mov)(blk)
+        out[fid] = []
         if not (rv & mv).any():
             continue
-        field = local_shift_field(rg, mg, valid=rv & mv, window_px=window_px,
-                                  step_px=window_px, min_confidence=min_confidence)
+        field = local_shift_field(rg, mg, valid=rv & mv, window_px=task.window_px,
+                                  step_px=task.window_px, min_confidence=task.min_confidence)
         for rec in _field_records(field):
             rec["col"] += blk.col_off
             rec["row"] += blk.row_off
-            records.append(rec)
+            out[fid].append(rec)
+    return out
+
+
+def _grey_source(source: GreySource) -> Callable[[Window], tuple[np.ndarray, np.ndarray]]:
+    return source if callable(source) else functools.partial(read_grey_window, source)
+
+
+def local_checks(ref: GreySource, movs: Mapping[str, GreySource], *, window_px: int,
+                 block_px: int = 2048, min_confidence: float = 0.1,
+                 shape: tuple[int, int] | None = None) -> dict[str, list[dict[str, Any]]]:
+    """:func:`local_check` of several flights against one reference, block by block.
+
+    Each block is one engine task (:func:`geosim.engine.parallel_map`) that reads the
+    reference once for every flight. Readers must be picklable for a multi-process engine
+    (paths and :class:`geosim.prepare.onewarp.WarpedGreyReader` are). Returns the records
+    per flight, in block order.
+    """
+    from geosim.engine import parallel_map
+
+    block = max(window_px, (block_px // window_px) * window_px)
+    if shape is None:
+        if callable(ref):
+            raise TypeError("local_checks: give shape when ref is a reader")
+        with rasterio.open(ref) as ds:
+            shape = (ds.height, ds.width)
+    height, width = int(shape[0]), int(shape[1])
+    tasks = [LocalCheckTask(ref, tuple(movs.items()), blk, window_px, min_confidence)
+             for blk in iter_windows(width, height, block_px=block)
+             if blk.width >= window_px and blk.height >= window_px]
+    records: dict[str, list[dict[str, Any]]] = {fid: [] for fid in movs}
+    for done in parallel_map(local_check_task, tasks, desc="local check"):
+        for fid, recs in done.items():
+            records[fid].extend(recs)
     return records
 
 

@@ -193,6 +193,26 @@ def _bilinear(nodes: np.ndarray, tc: np.ndarray, tr: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- pure kernel
 
 
+def _fixed_maps(col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's fixed-point maps (1/32 px) of float source coordinates (NaN = outside)."""
+    mx = np.asarray(col, dtype=np.float32)
+    my = np.asarray(row, dtype=np.float32)
+    bad = ~(np.isfinite(mx) & np.isfinite(my))
+    if bad.any():
+        mx, my = np.where(bad, -16.0, mx).astype(np.float32), np.where(bad, -16.0, my).astype(
+            np.float32)
+    return cv2.convertMaps(mx, my, cv2.CV_16SC2)      # once for all bands (1/32 px, as cv2)
+
+
+def _remap_mask(valid: np.ndarray, m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    """Conservative output mask: every source pixel under the 4×4 bicubic kernel valid."""
+    core = valid.astype(np.uint8) * 255
+    if not valid.all():
+        core = cv2.erode(core, np.ones((3, 3), np.uint8))
+    return cv2.remap(core, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=0) == 255
+
+
 def remap_window(image: np.ndarray, valid: np.ndarray, col: np.ndarray, row: np.ndarray,
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Bicubic resampling of a source block at given coordinates (pure).
@@ -213,13 +233,7 @@ def remap_window(image: np.ndarray, valid: np.ndarray, col: np.ndarray, row: np.
         Output in the input dtype (integers rounded and saturated; 0 where invalid) and
         a conservative mask (every source pixel under the 4×4 kernel valid).
     """
-    mx = np.asarray(col, dtype=np.float32)
-    my = np.asarray(row, dtype=np.float32)
-    bad = ~(np.isfinite(mx) & np.isfinite(my))
-    if bad.any():
-        mx, my = np.where(bad, -16.0, mx).astype(np.float32), np.where(bad, -16.0, my).astype(
-            np.float32)
-    m1, m2 = cv2.convertMaps(mx, my, cv2.CV_16SC2)      # once for all bands (1/32 px, as cv2)
+    m1, m2 = _fixed_maps(col, row)
     dtype = image.dtype
     work = dtype if dtype.name in _CV_DTYPES else np.dtype(np.float64)
     out = np.empty((image.shape[0], *col.shape), dtype=work)
@@ -228,11 +242,7 @@ def remap_window(image: np.ndarray, valid: np.ndarray, col: np.ndarray, row: np.
         src[~valid] = 0
         out[b] = cv2.remap(src, m1, m2, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT,
                            borderValue=0)
-    core = valid.astype(np.uint8) * 255
-    if not valid.all():
-        core = cv2.erode(core, np.ones((3, 3), np.uint8))
-    ok = cv2.remap(core, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                   borderValue=0) == 255
+    ok = _remap_mask(valid, m1, m2)
     if work != dtype:
         info = np.iinfo(dtype)
         out = np.clip(np.rint(out), info.min, info.max).astype(dtype)
@@ -256,6 +266,26 @@ def source_window(col: np.ndarray, row: np.ndarray, width: int, height: int,
     if c1 <= c0 or r1 <= r0:
         return None
     return Window(c0, r0, c1 - c0, r1 - r0)
+
+
+def _window_coords(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int],
+                   src: rasterio.DatasetReader
+                   ) -> tuple[Window, np.ndarray, np.ndarray] | None:
+    """Source window and window-relative float32 coordinates of a destination window."""
+    col, row = warp.source_coords(dst_transform, shape)
+    swin = source_window(col, row, src.width, src.height)
+    if swin is None:
+        return None
+    # OpenCV samples at 1/32 px; quantising the global coordinates first makes the
+    # window-relative float32 maps exact, so the bits do not depend on the window
+    maps = []
+    for a, off in ((col, swin.col_off), (row, swin.row_off)):
+        a *= SUBPIXEL
+        np.rint(a, out=a)
+        a -= off * SUBPIXEL
+        a *= 1.0 / SUBPIXEL
+        maps.append(a.astype(np.float32))
+    return swin, maps[0], maps[1]
 
 
 def read_warped(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int], *,
@@ -283,23 +313,24 @@ def read_warped(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int
         with rasterio.open(warp.src_path) as ds:
             return read_warped(warp, dst_transform, shape, src=ds, bands=bands)
     bands = bands or image_band_indexes(src)
-    col, row = warp.source_coords(dst_transform, shape)
-    swin = source_window(col, row, src.width, src.height)
-    if swin is None:
+    found = _window_coords(warp, dst_transform, shape, src)
+    if found is None:
         return (np.zeros((len(bands), *shape), dtype=src.dtypes[bands[0] - 1]),
                 np.zeros(shape, dtype=bool))
+    swin, mx, my = found
     image = src.read(bands, window=swin)
     valid = read_valid_mask(src, window=swin)
-    # OpenCV samples at 1/32 px; quantising the global coordinates first makes the
-    # window-relative float32 maps exact, so the bits do not depend on the window
-    maps = []
-    for a, off in ((col, swin.col_off), (row, swin.row_off)):
-        a *= SUBPIXEL
-        np.rint(a, out=a)
-        a -= off * SUBPIXEL
-        a *= 1.0 / SUBPIXEL
-        maps.append(a.astype(np.float32))
-    return remap_window(image, valid, *maps)
+    return remap_window(image, valid, mx, my)
+
+
+def read_warped_valid(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int], *,
+                      src: rasterio.DatasetReader) -> np.ndarray:
+    """The mask :func:`read_warped` gives for a window, without resampling the image."""
+    found = _window_coords(warp, dst_transform, shape, src)
+    if found is None:
+        return np.zeros(shape, dtype=bool)
+    swin, mx, my = found
+    return _remap_mask(read_valid_mask(src, window=swin), *_fixed_maps(mx, my))
 
 
 @dataclass(frozen=True)
@@ -335,9 +366,9 @@ def warp_raster_task(task: WarpRasterTask) -> WarpRasterRecord:
     Memory: one destination block (``block_px``²), its coordinates and the source
     window under it.
     """
-    from geosim.prepare.reproject import SUPPORTED_DTYPES, warp_threads
+    from geosim.prepare.reproject import SUPPORTED_DTYPES
 
-    cv2.setNumThreads(warp_threads())
+    # OpenCV's threads: the task's budget, set by the engine (geosim.engine.task_limits)
     rows, cols = task.shape
     t = _aff(task.dst_transform)
     with rasterio.open(task.warp.src_path) as src:

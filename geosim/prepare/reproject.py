@@ -52,12 +52,12 @@ WARP_MEM_LIMIT_MB = 256
 
 
 def warp_threads() -> int:
-    """Threads for one GDAL warp: ``GEOSIM_THREADS`` if set (a Dask worker of a
-    multi-process cluster sets 1), otherwise every core of the machine."""
-    env = os.environ.get("GEOSIM_THREADS", "").strip()
-    if env.isdigit() and int(env) > 0:
-        return int(env)
-    return os.cpu_count() or 1
+    """Threads for one GDAL warp or block decode: the running task's budget
+    (:func:`geosim.engine.task_threads`: 1 on a Dask worker, every core in this process,
+    ``GEOSIM_THREADS`` when set)."""
+    from geosim.engine import task_threads
+
+    return task_threads()
 
 
 def resampling_method(name: str) -> Resampling:

@@ -34,6 +34,7 @@ from geosim.prepare.footprints import common_extent, raster_footprint, source_fo
 from geosim.prepare.grid import SiteGrid, resolve_site_crs, snap_grid, union_bounds
 from geosim.prepare.onewarp import (
     ComposedWarp,
+    WarpedGreyReader,
     WarpRasterTask,
     read_grey_on_grid,
     warp_raster_task,
@@ -41,13 +42,13 @@ from geosim.prepare.onewarp import (
 from geosim.prepare.pairs import pair_rows, pairs_csv_text
 from geosim.prepare.reproject import bounds_in_crs, reproject_to_grid
 from geosim.prepare.tiles import (
-    CoverageTask,
-    CutTileTask,
-    coverage_task,
-    cut_tile_task,
+    AlignedCoverageTask,
+    WarpTileTask,
+    aligned_coverage_task,
     index_records,
     iter_tiles,
     select_tiles,
+    warp_tile_task,
 )
 from geosim.result import StepResult
 from geosim.rundir import RunDir, RunPath
@@ -57,6 +58,8 @@ MIN_COMMON_UAV_PX = 100 * 100
 #: Side of the local-check windows (UAV px) and the largest block read at once.
 LOCAL_WINDOW_PX = 256
 BLOCK_PX = 2048
+#: Tile windows per coverage task (one flight's masks over this many tiles).
+COVERAGE_CHUNK = 8
 
 
 def _crs_name(crs: Any) -> str:
@@ -343,20 +346,21 @@ def _local_fields(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
                   ) -> tuple[dict[str, dict[str, Any]], list[WarpRasterTask]]:
     """``align_model = "local"``: estimate each flight's displacement field.
 
-    The field is measured between the aligned reference (``aligned/<ref>.tif``, written
-    first) and the globally aligned flight read on the fly through its composed warp
-    (nothing written), fitted (:mod:`geosim.align.field`) and written to
-    ``alignment_field/<flight>.tif``. Returns the ``local_field`` record per flight and the
-    other flights' warp tasks with the field plugged into the composed warp: each flight is
-    then resampled once, from its original file, onto the aligned grid.
+    The field is measured between the aligned reference and the globally aligned flight,
+    both read on the fly through their composed warps (nothing written), fitted
+    (:mod:`geosim.align.field`) and written to ``alignment_field/<flight>.tif``. Returns
+    the ``local_field`` record per flight and the other flights' warp tasks with the field
+    plugged into the composed warp: each flight is then resampled once, from its original
+    file, onto the aligned grid (tile by tile by the tiles step; whole, into ``aligned/``,
+    only with ``keep_intermediates``).
     """
     from dataclasses import replace
 
     from geosim.align.field import fit_field, reject_outliers
     from geosim.prepare import local_align as la
-    from geosim.prepare.onewarp import WarpedGreyReader
 
     ref_id = site.reference_flight
+    ref = site.flight(ref_id)
     aligned_transform = grid.uav_window_transform(awin)
     shape = (int(awin.height), int(awin.width))
     records: dict[str, dict[str, Any]] = {}
@@ -365,14 +369,14 @@ def _local_fields(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
         if f.id == ref_id:
             continue
         task = tasks[f.id]
-        shifts = la.measure_local_shifts(run.aligned(ref_id),
+        ref_task = tasks[ref_id]
+        shifts = la.measure_local_shifts(WarpedGreyReader(ref_task.warp, ref_task.dst_transform),
                                          WarpedGreyReader(task.warp, task.dst_transform),
                                          shape=shape, what=f.id)
         shifts = reject_outliers(shifts, min_confidence=site.parameters.min_align_confidence)
         field = fit_field(shifts, aligned_transform, shape)
         rel = run.rel(run.alignment_field(f.id))
-        tags = provenance_tags("align", params, [run.aligned(ref_id), f.image],
-                               base_dir=run.root)
+        tags = provenance_tags("align", params, [ref.image, f.image], base_dir=run.root)
         la.write_field_geotiff(run.alignment_field(f.id), field, grid.crs, tags=tags)
         warp_tags = provenance_tags(
             "align", {**params, "resampled": "once, from the original flight, through the "
@@ -387,8 +391,9 @@ def _aligned_tasks(site: SiteConfig, run: RunDir, grid: SiteGrid,
                    warps: dict[str, ComposedWarp], entries: dict[str, dict[str, Any]],
                    rwin: Window, awin: Window, params: dict[str, Any]
                    ) -> dict[str, WarpRasterTask]:
-    """The engine tasks writing ``aligned/<flight>.tif``: one warp from each original flight
-    onto the aligned grid through its global correction."""
+    """The warps of every flight onto the aligned grid through its global correction, as
+    engine tasks writing ``aligned/<flight>.tif`` (run only with ``keep_intermediates``).
+    Records each flight's ``C⁻¹`` in ``entries[flight]["aligned_to_stated"]``."""
     aligned_transform = grid.uav_window_transform(awin)
     g3 = al._3x3(grid.uav_transform)
     tasks = {}
@@ -399,6 +404,8 @@ def _aligned_tasks(site: SiteConfig, run: RunDir, grid: SiteGrid,
             m_grid = al.window_to_grid_matrix(np.array(entries[f.id]["matrix_px"]), rwin)
         # C⁻¹ in map coordinates: aligned frame → the flight's stated frame
         c_inv = al._affine_from_3x3(g3 @ m_grid @ np.linalg.inv(g3))
+        # recorded: the tiles, the calibration and the diagnosis rebuild the warp from it
+        entries[f.id]["aligned_to_stated"] = [float(v) for v in tuple(c_inv)[:6]]
         tasks[f.id] = WarpRasterTask(
             warps[f.id].with_correction(c_inv), str(run.aligned(f.id)),
             tuple(aligned_transform)[:6], (int(awin.height), int(awin.width)), BLOCK_PX,
@@ -413,6 +420,41 @@ def _run_warps(run: RunDir, tasks: list[WarpRasterTask]) -> int:
     return sum(parallel_map(run_resumable, [
         ResumableTask(str(run.root), warp_raster_task, t, t.dst_path, (t.warp.src_path,))
         for t in tasks], desc="align"))
+
+
+def _local_check(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
+                 tasks: dict[str, WarpRasterTask]) -> tuple[dict[str, Any], bool]:
+    """Remaining shift field between each aligned flight and the reference (both read
+    through their warps); writes ``alignment_check.geojson``. Returns the ``local_check``
+    statistics per flight and whether the arrows file was written."""
+    ref_id = site.reference_flight
+    p = site.parameters
+    aligned_transform = grid.uav_window_transform(awin)
+    local: dict[str, Any] = {}
+    arrows = []
+    win_px = int(min(LOCAL_WINDOW_PX, max(64, min(awin.width, awin.height) // 4)))
+    shape = (int(awin.height), int(awin.width))
+    checks = al.local_checks(
+        WarpedGreyReader(tasks[ref_id].warp, tasks[ref_id].dst_transform),
+        {f.id: WarpedGreyReader(tasks[f.id].warp, tasks[f.id].dst_transform)
+         for f in site.flights if f.id != ref_id},
+        shape=shape, window_px=win_px, block_px=BLOCK_PX, min_confidence=p.min_align_confidence)
+    for f in site.flights:
+        if f.id == ref_id:
+            continue
+        recs = checks[f.id]
+        shifts = np.array([[r["dx_px"], r["dy_px"]] for r in recs]).reshape(-1, 2)
+        conf = np.array([r["confident"] for r in recs], dtype=bool)
+        local[f.id] = {**al.local_field_stats(shifts, conf, grid.uav_gsd_m),
+                       "window_px": win_px}
+        arrows.append(al.arrows_gdf(recs, aligned_transform, grid.crs.to_wkt(), f.id))
+    if arrows:
+        import pandas as pd
+
+        gdf = gpd.GeoDataFrame(pd.concat(arrows, ignore_index=True), geometry="geometry",
+                               crs=grid.crs.to_wkt())
+        write_geojson(gdf, run.alignment_check_geojson)
+    return local, bool(arrows)
 
 
 def run_align(site: SiteConfig, out: RunPath) -> StepResult:
@@ -464,7 +506,8 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
             entry.update(confidence=reg["confidence"], matrix_px=reg["matrix_px"],
                          kernel=reg["kernel"])
         entry["window"] = win_dict
-        entry["path"] = run.rel(run.aligned(f.id))
+        if p.keep_intermediates:
+            entry["path"] = run.rel(run.aligned(f.id))
         entries[f.id] = entry
 
     center_m = entries[ref_id]["center_m"]
@@ -483,39 +526,21 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
         anchor = _identity_anchor(center_m)
     aligned_transform = grid.uav_window_transform(awin)
     tasks = _aligned_tasks(site, run, grid, warps, entries, rwin, awin, params)
-    todo = list(tasks.values())
-    n_skipped = 0
     if p.align_model == "local":
         params["align_model"] = "local"
-        # the reference first (the field is measured against it), then every other flight
-        # once, from its original file, through global correction + field
-        n_skipped += _run_warps(run, [tasks[ref_id]])
-        records, todo = _local_fields(site, run, grid, awin, tasks, params)
+        # the field is measured against the reference read through its warp (nothing
+        # written); every other flight is then resampled once, from its original file,
+        # through global correction + field
+        records, local_tasks = _local_fields(site, run, grid, awin, tasks, params)
         for fid, rec in records.items():
             entries[fid]["local_field"] = rec
-    n_skipped += _run_warps(run, todo)
+        tasks.update({t.what: t for t in local_tasks})
+    n_skipped = 0
+    if p.keep_intermediates:  # the whole-flight aligned rasters: inspection copies only
+        n_skipped = _run_warps(run, list(tasks.values()))
 
     # local check: remaining shift field between each aligned flight and the reference
-    local: dict[str, Any] = {}
-    arrows = []
-    win_px = int(min(LOCAL_WINDOW_PX, max(64, min(awin.width, awin.height) // 4)))
-    for f in site.flights:
-        if f.id == ref_id:
-            continue
-        recs = al.local_check(run.aligned(ref_id), run.aligned(f.id),
-                              window_px=win_px, block_px=BLOCK_PX,
-                              min_confidence=p.min_align_confidence, what=f.id)
-        shifts = np.array([[r["dx_px"], r["dy_px"]] for r in recs]).reshape(-1, 2)
-        conf = np.array([r["confident"] for r in recs], dtype=bool)
-        local[f.id] = {**al.local_field_stats(shifts, conf, grid.uav_gsd_m),
-                       "window_px": win_px}
-        arrows.append(al.arrows_gdf(recs, aligned_transform, grid.crs.to_wkt(), f.id))
-    if arrows:
-        import pandas as pd
-
-        gdf = gpd.GeoDataFrame(pd.concat(arrows, ignore_index=True), geometry="geometry",
-                               crs=grid.crs.to_wkt())
-        write_geojson(gdf, run.alignment_check_geojson)
+    local, arrows = _local_check(site, run, grid, awin, tasks)
 
     doc = {
         "reference": ref_id,
@@ -539,7 +564,9 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
                    f"; anchored to the satellite (shift {anchor['shift_m'][0]:+.3f}, "
                    f"{anchor['shift_m'][1]:+.3f} m, {anchor['model']}, confidence "
                    f"{anchor['confidence']:.2f})")
-    outputs = [run.alignment_json] + [run.aligned(f.id) for f in site.flights]
+    outputs = [run.alignment_json]
+    if p.keep_intermediates:
+        outputs += [run.aligned(f.id) for f in site.flights]
     outputs += [run.alignment_field(k) for k, e in entries.items() if "local_field" in e]
     if arrows:
         outputs.append(run.alignment_check_geojson)
@@ -559,7 +586,9 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
         summary=(f"{len(entries)} flight(s) on reference {ref_id} ({p.align_model}); "
                  f"aligned grid {int(awin.width)}×{int(awin.height)} px; largest |shift| "
                  f"at flight {worst[1]}{anchor_text}"
-                 + skip_text(n_skipped, len(entries)).replace("current", "aligned")),
+                 + ("" if p.keep_intermediates else "; flights resampled once, tile by tile, "
+                   "by the tiles step (aligned/ kept only with keep_intermediates)")
+                + skip_text(n_skipped, len(entries)).replace("current", "aligned")),
         warnings=_fallback_warnings(entries), outputs=[run.rel(o) for o in outputs],
         record=record)
 
@@ -584,12 +613,16 @@ def read_alignment(out: RunPath) -> dict[str, Any]:
 
 
 def run_tiles(site: SiteConfig, out: RunPath) -> StepResult:
-    """Cut every flight's aligned raster into ``tile_px`` tiles with the same ids.
+    """Resample every flight once, tile by tile, onto ``tile_px`` tiles of the aligned grid.
 
+    Each tile of each flight is one engine task that reads the original flight through its
+    composed warp (:mod:`geosim.prepare.aligned`): no full-flight aligned raster is needed.
     Writes ``tiles/<flight>/<tile_id>.tif`` and ``tiles/index.geojson`` (+ ``.gpkg``,
     ``.json``). Tiles of an earlier run that this one does not write are removed by the
     runner (:func:`geosim.pipeline.run_pipeline`), from run.json's record of outputs.
     """
+    from geosim.prepare.aligned import aligned_flights, flight_inputs
+
     run = RunDir.of(out)
     grid = read_grid(run)
     doc = read_alignment(run)
@@ -598,10 +631,16 @@ def run_tiles(site: SiteConfig, out: RunPath) -> StepResult:
     aligned_transform = Affine(*ag["transform"])
     shape = (int(ag["shape"][0]), int(ag["shape"][1]))
     tiles = list(iter_tiles(shape, aligned_transform, p.tile_px))
-    apath = {f.id: run.require_aligned(f.id) for f in site.flights}
-    fractions = parallel_map(coverage_task, [CoverageTask(str(path), tuple(t.window for t in tiles))
-                                             for path in apath.values()])
-    coverage = dict(zip(apath, fractions, strict=True))
+    flights = aligned_flights(site, run)
+    windows = tuple(t.window for t in tiles)
+    chunks = [windows[k:k + COVERAGE_CHUNK] for k in range(0, len(windows), COVERAGE_CHUNK)]
+    jobs_cov = [(fid, c) for fid in flights for c in chunks]
+    fractions = parallel_map(aligned_coverage_task, [
+        AlignedCoverageTask(flights[fid], c, BLOCK_PX) for fid, c in jobs_cov],
+        desc="tile coverage")
+    coverage: dict[str, list[float]] = {fid: [] for fid in flights}
+    for (fid, _), part in zip(jobs_cov, fractions, strict=True):
+        coverage[fid].extend(part)
     selected = select_tiles(tiles, coverage, keep_partial=p.keep_partial_tiles)
     if not selected:  # refuse before anything is written: an empty tile set helps nobody
         size_m = p.tile_px * p.uav_gsd_m
@@ -610,16 +649,18 @@ def run_tiles(site: SiteConfig, out: RunPath) -> StepResult:
         raise ExtentError(f"{site.path or 'site'}: no tiles of {p.tile_px} px ({size_m:g} m): "
                           f"{why}; set a smaller parameters.tile_px (a multiple of "
                           f"{p.phi}) or keep_partial_tiles = true")
-    params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles}
-    jobs = [(t, fid) for t, cov in selected for fid in apath if cov[fid] > 0]
+    params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles,
+              "resampled": "once, from the original flight (bicubic)"}
+    jobs = [(t, fid) for t, cov in selected for fid in flights if cov[fid] > 0]
     acquired = {f.id: f.acquired for f in site.flights}
-    cut = [CutTileTask(str(apath[fid]), str(run.tile(fid, t.id)), t,
-                       {**provenance_tags("tiles", params, [apath[fid]], base_dir=run.root),
-                        "GEOSIM_TILE_ID": t.id, "GEOSIM_FLIGHT": fid,
-                        **acquisition_tags(acquired[fid])}) for t, fid in jobs]
+    cut = [WarpTileTask(flights[fid], str(run.tile(fid, t.id)), t,
+                        {**provenance_tags("tiles", params, list(flight_inputs(flights[fid])),
+                                           base_dir=run.root),
+                         "GEOSIM_TILE_ID": t.id, "GEOSIM_FLIGHT": fid,
+                         **acquisition_tags(acquired[fid])}, BLOCK_PX) for t, fid in jobs]
     n_skipped = sum(parallel_map(run_resumable, [  # resumable: current tiles are skipped
-        ResumableTask(str(run.root), cut_tile_task, c, c.dst_path, (c.src_path,)) for c in cut],
-        desc="tiles"))
+        ResumableTask(str(run.root), warp_tile_task, c, c.dst_path, flight_inputs(c.flight))
+        for c in cut], desc="tiles"))
     outputs: list[Path] = [run.tile(fid, t.id) for t, fid in jobs]
     written = len(outputs)
     records = index_records(selected, _crs_name(grid.crs), p.tile_px,

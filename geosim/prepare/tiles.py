@@ -14,14 +14,11 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rasterio
 from affine import Affine
 from rasterio.windows import Window
 from rasterio.windows import bounds as window_bounds
@@ -68,24 +65,6 @@ def iter_tiles(shape: tuple[int, int], aligned_transform: Affine, tile_px: int
                            tile_transform(aligned_transform, r, c, tile_px))
 
 
-@contextlib.contextmanager
-def _reads_of(path: str | os.PathLike[str]) -> Iterator[None]:
-    """Name ``path`` in a read failure: GDAL's message for a boundless (VRT) read of a
-    damaged COG names only the block, not the file."""
-    from rasterio.errors import RasterioIOError
-
-    from geosim.errors import RasterError
-    from geosim.io.raster import read_failure
-
-    try:
-        yield
-    except RasterioIOError as exc:
-        failure = read_failure(exc)
-        if failure is None:
-            raise
-        raise RasterError(f"{path}: {failure}") from exc
-
-
 def select_tiles(tiles: Sequence[TileSpec], coverage: Mapping[str, Sequence[float]], *,
                  keep_partial: bool) -> list[tuple[TileSpec, dict[str, float]]]:
     """Tiles to cut, with each flight's coverage fraction.
@@ -109,51 +88,6 @@ def select_tiles(tiles: Sequence[TileSpec], coverage: Mapping[str, Sequence[floa
     return out
 
 
-def write_tile(src_path: str | os.PathLike[str], dst_path: str | os.PathLike[str],
-               tile: TileSpec, *, tags: Mapping[str, str] | None = None) -> Path:
-    """Cut one tile from an aligned raster into a tiled, compressed GeoTIFF with a mask.
-
-    The aligned raster's blocks are decoded on ``GEOSIM_THREADS`` threads; compression
-    stays single-threaded, because GDAL's multi-threaded writer lays the blocks out in
-    another order, and the files must be the same bytes whatever ran them.
-    """
-    from geosim.prepare.reproject import warp_threads
-
-    threads = str(warp_threads())
-    with _reads_of(src_path), rasterio.Env(GDAL_NUM_THREADS=threads), \
-            rasterio.open(src_path) as src:
-        img = src.read(window=tile.window, boundless=True, fill_value=0)
-        mask = src.read_masks(1, window=tile.window, boundless=True)
-        descriptions = [d or f"band {i}" for i, d in enumerate(src.descriptions, 1)]
-        colorinterp = list(src.colorinterp)
-        crs = src.crs
-        dtype = src.dtypes[0]
-    img[:, mask == 0] = 0
-    with create_geotiff(dst_path, width=int(tile.window.width), height=int(tile.window.height),
-                        count=img.shape[0], dtype=dtype, crs=crs, transform=tile.transform,
-                        band_descriptions=descriptions, tags=tags, internal_mask=True) as dst:
-        dst.colorinterp = colorinterp
-        dst.write(img)
-        dst.write_mask(np.where(mask > 0, 255, 0).astype(np.uint8))
-    return Path(dst_path)
-
-
-@dataclass(frozen=True)
-class CutTileTask:
-    """Cut one tile of one flight (an engine task: picklable, writes its own file)."""
-
-    src_path: str
-    dst_path: str
-    tile: TileSpec
-    tags: Mapping[str, str]
-
-
-def cut_tile_task(task: CutTileTask) -> str:
-    """Run a :class:`CutTileTask`; returns the tile path. Pixels are copied, not resampled."""
-    with _naming_read_failures(task.src_path):
-        return str(write_tile(task.src_path, task.dst_path, task.tile, tags=task.tags))
-
-
 @contextlib.contextmanager
 def _naming_read_failures(path: str) -> Iterator[None]:
     """A failed read of ``path`` becomes one-line RasterError that names the file."""
@@ -171,21 +105,64 @@ def _naming_read_failures(path: str) -> Iterator[None]:
 
 
 @dataclass(frozen=True)
-class CoverageTask:
-    """Valid fractions of every tile window of one aligned raster (an engine task)."""
+class WarpTileTask:
+    """One tile of one flight, resampled once from the original flight (an engine task).
 
-    path: str
+    The tile's pixels are those of the flight on the aligned grid
+    (:class:`geosim.prepare.aligned.AlignedFlight`) over ``tile.window``; parts of the
+    window outside the aligned grid (partial tiles) are 0 and masked.
+    """
+
+    flight: Any                       # geosim.prepare.aligned.AlignedFlight
+    dst_path: str
+    tile: TileSpec
+    tags: Mapping[str, str]
+    block_px: int = 2048
+
+
+def warp_tile_task(task: WarpTileTask) -> str:
+    """Run a :class:`WarpTileTask`; returns the tile path.
+
+    Memory: the tile (bands × tile_px²) plus one ``block_px``² block's coordinates and
+    source window.
+    """
+    from geosim.io.raster import iter_windows
+
+    win = task.tile.window
+    width, height = int(win.width), int(win.height)
+    with _naming_read_failures(task.flight.warp.src_path if task.flight.warp is not None
+                               else str(task.flight.path)), task.flight.open() as reader:
+        img = np.zeros((reader.count, height, width), dtype=reader.dtype)
+        valid = np.zeros((height, width), dtype=bool)
+        for blk in iter_windows(width, height, block_px=task.block_px):
+            r0, c0 = int(blk.row_off), int(blk.col_off)
+            r1, c1 = r0 + int(blk.height), c0 + int(blk.width)
+            img[:, r0:r1, c0:c1], valid[r0:r1, c0:c1] = reader.read(Window(
+                int(win.col_off) + c0, int(win.row_off) + r0, c1 - c0, r1 - r0))
+        with create_geotiff(task.dst_path, width=width, height=height, count=reader.count,
+                            dtype=reader.dtype, crs=reader.crs, transform=task.tile.transform,
+                            band_descriptions=reader.descriptions, tags=task.tags,
+                            internal_mask=True) as dst:
+            dst.colorinterp = reader.colorinterp
+            dst.write(img)
+            dst.write_mask(np.where(valid, 255, 0).astype(np.uint8))
+    return str(task.dst_path)
+
+
+@dataclass(frozen=True)
+class AlignedCoverageTask:
+    """Valid fractions of tile windows of one flight on the aligned grid (an engine task)."""
+
+    flight: Any                       # geosim.prepare.aligned.AlignedFlight
     windows: tuple[Window, ...]
+    block_px: int = 2048
 
 
-def coverage_task(task: CoverageTask) -> list[float]:
-    """Run a :class:`CoverageTask`: one fraction per window, one open of the raster."""
-    out = []
-    with _naming_read_failures(task.path), rasterio.open(task.path) as ds:
-        for w in task.windows:
-            m = ds.read_masks(1, window=w, boundless=True)
-            out.append(float(np.count_nonzero(m)) / m.size)
-    return out
+def aligned_coverage_task(task: AlignedCoverageTask) -> list[float]:
+    """Run an :class:`AlignedCoverageTask`: one fraction per window (masks only: the
+    conservative mask of the warp, no image resampled)."""
+    with task.flight.open() as reader:
+        return [reader.valid_fraction(w, task.block_px) for w in task.windows]
 
 
 def index_records(selected: Sequence[tuple[TileSpec, Mapping[str, float]]], crs_name: str,
