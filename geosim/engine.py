@@ -320,6 +320,10 @@ class LocalCluster(DaskEngine):
                 self._cluster = DaskLocalCluster(
                     n_workers=self.workers, threads_per_worker=1, processes=True,
                     host="127.0.0.1", dashboard_address=None, env=env,
+                    # the scheduler's HTTP server (health, metrics) would otherwise take
+                    # port 8787 (and warn when that is busy): a free port on 127.0.0.1
+                    scheduler_kwargs={"dashboard": False,
+                                      "dashboard_address": "127.0.0.1:0"},
                     silence_logs=logging.ERROR, timeout=CONNECT_TIMEOUT_S)
             return Client(self._cluster, timeout=CONNECT_TIMEOUT_S)
         except Exception as exc:

@@ -157,12 +157,25 @@ def test_unreachable_scheduler_is_one_clear_error(monkeypatch: pytest.MonkeyPatc
         parallel_map(_square, [1, 2])
 
 
-def test_local_cluster_order_workers_and_worker_errors() -> None:
-    with open_engine(2) as engine:
-        assert parallel_map(_square, list(range(8))) == [i * i for i in range(8)]
-        with pytest.raises(InputFileError, match="tile -1.tif not found"):
-            parallel_map(_square, [2, -1, 3])
-        info = engine.describe()
+def test_local_cluster_order_workers_and_worker_errors(recwarn: pytest.WarningsRecorder
+                                                       ) -> None:
+    # Dask's dashboard port busy (another cluster on this machine) must not matter: the
+    # scheduler's HTTP server takes a free port instead of warning about 8787
+    busy = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        busy.bind(("127.0.0.1", 8787))
+        busy.listen()
+    except OSError:
+        pass  # already taken by another program: the same case
+    try:
+        with open_engine(2) as engine:
+            assert parallel_map(_square, list(range(8))) == [i * i for i in range(8)]
+            with pytest.raises(InputFileError, match="tile -1.tif not found"):
+                parallel_map(_square, [2, -1, 3])
+            info = engine.describe()
+    finally:
+        busy.close()
+    assert not [w for w in recwarn if "already in use" in str(w.message)]
     assert info["kind"] == "local-cluster" and info["workers"] == 2
     assert info["workers_connected"] == 2
     assert info["scheduler"].startswith("tcp://127.0.0.1:")

@@ -510,9 +510,11 @@ class SpectralDegrader:
         self.n_coef = (n_coefficients(rows, q=self.q_min, phi=self.phi),
                        n_coefficients(cols, q=self.q_min, phi=self.phi))
         self._workers = workers
-        if valid_b is not None and valid_b.any():
-            stack = _as_stack(fill_invalid(stack, valid_b))
-        self._coef = np.stack([self._truncated_dct(band) for band in stack])
+        fill = valid_b is not None and valid_b.any()
+        # invalid pixels filled one band at a time: a float32 copy of one band, not of all
+        # (the same numbers: fill_invalid treats each band on its own)
+        self._coef = np.stack([self._truncated_dct(fill_invalid(band, valid_b) if fill
+                                                   else band) for band in stack])
         self._basis_rows = _resample_basis(rows, self.out_shape[0], self.n_coef[0], self.phi)
         self._basis_cols = _resample_basis(cols, self.out_shape[1], self.n_coef[1], self.phi)
 
