@@ -21,7 +21,7 @@ from rasterio.windows import Window
 from geosim.degrade.steps import _grey_reader
 from geosim.io.raster import RasterData
 from geosim.overlay.check import common_grid, read_on_grid
-from geosim.prepare.anchor import read_area_averaged, read_averaged_window
+from geosim.prepare.anchor import read_averaged_window
 from tests.helpers import textured_rgb, write_raster
 
 pytestmark = pytest.mark.skipif(shutil.which("gdal_translate") is None
@@ -93,10 +93,6 @@ def test_area_average_carries_the_averaged_grid(uav_tif: Path, tmp_path: Path,
             inside[i, j] = (0 <= r0 + i < 240 // phi) and (0 <= c0 + j < 360 // phi)
     np.testing.assert_array_equal(data.valid, inside)
     np.testing.assert_allclose(data.array[0][inside], _luma(bands)[inside], rtol=0, atol=1e-3)
-    # the tuple form kept for prepare/steps.py gives the same arrays
-    grey, valid = read_area_averaged(uav_tif, window, phi, block_px=50)
-    np.testing.assert_array_equal(grey, data.array[0])
-    np.testing.assert_array_equal(valid, data.valid)
 
 
 def test_calibrate_grey_window_is_georeferenced(uav_tif: Path, tmp_path: Path) -> None:

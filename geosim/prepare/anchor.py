@@ -464,17 +464,6 @@ def read_averaged_window(path: str | os.PathLike[str], window: Window, phi: int,
                       band_names=("grey",), path=Path(path))
 
 
-def read_area_averaged(path: str | os.PathLike[str], window: Window, phi: int, *,
-                       block_px: int = 2048) -> tuple[np.ndarray, np.ndarray]:
-    """``(grey, valid)`` of :func:`read_averaged_window`, without the georeference.
-
-    Kept only for ``geosim/prepare/steps.py`` (being rewritten elsewhere); new code uses
-    :func:`read_averaged_window`. Delete once that caller has moved.
-    """
-    data = read_averaged_window(path, window, phi, block_px=block_px)
-    return data.array[0], data.valid
-
-
 def read_satellite_window(path: str | os.PathLike[str], window: Window) -> RasterData:
     """The RGB bands, valid mask and window transform of ``grid/satellite.tif`` (the window
     may reach outside the scene: those pixels are invalid)."""
@@ -484,6 +473,6 @@ def read_satellite_window(path: str | os.PathLike[str], window: Window) -> Raste
 
 __all__ = ["AnchorFit", "DARK_FRACTION", "HIGHPASS_SIGMA_PX", "METHOD", "anchor_affine",
            "area_average", "compose_entry", "highpass",
-           "prepare_for_satellite", "read_area_averaged", "read_averaged_window",
+           "prepare_for_satellite", "read_averaged_window",
            "read_satellite_window",
            "register_to_satellite", "stable_mask"]

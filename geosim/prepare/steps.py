@@ -295,8 +295,9 @@ def anchor_to_satellite(site: SiteConfig, out: RunPath, grid: SiteGrid, window: 
                                 "to it)")
     phi = grid.phi
     with _reference_on_grid(site, run, grid, window) as (ref_path, ref_win):
-        ref_grey, ref_valid = anc.read_area_averaged(ref_path, ref_win, phi,
-                                                     block_px=(BLOCK_PX // phi) * phi)
+        ref = anc.read_averaged_window(ref_path, ref_win, phi,
+                                       block_px=(BLOCK_PX // phi) * phi)
+    ref_grey, ref_valid = ref.array[0], ref.valid
     sat_win = Window(int(window.col_off) // phi, int(window.row_off) // phi,
                      int(window.width) // phi, int(window.height) // phi)
     sat = anc.read_satellite_window(sat_path, sat_win)
