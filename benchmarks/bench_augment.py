@@ -277,15 +277,7 @@ def main() -> None:
     OUT.write_text(json.dumps(results, indent=2) + "\n")
     print()
     if "baseline" in results:
-        base = results["baseline"]
-        print("| 5000 shipped, 1 thread | pairs | CPU s/pair | pairs/s (CPU) | pairs/s (wall) "
-              "| load average |\n|---|---|---|---|---|---|")
-        for which in ("baseline", "this tree"):
-            r = base[which]
-            name = f"{base['revision']} ({base['commit'][:8]})" if which == "baseline" else which
-            print(f"| {name} | {r['pairs']} | {r['cpu_seconds_per_pair']} | "
-                  f"{r['cpu_pairs_per_second']} | {r['wall_pairs_per_second']} | "
-                  f"{', '.join(map(str, r['load_average']))} |")
+        _print_baseline_table(results["baseline"], "5000 shipped, 1 thread")
         print()
     print("| pair size (px) | case | pairs | pairs/s | wall s/pair | CPU s/pair | load |")
     print("|---|---|---|---|---|---|---|")
@@ -299,6 +291,18 @@ def main() -> None:
           f"peak RSS {results['peak_rss_mb']} MB; results in {OUT.relative_to(ROOT)}")
 
 
+def _print_baseline_table(res: dict, title: str) -> None:
+    """Markdown table of a baseline revision's timing next to this tree's."""
+    print(f"| {title} | pairs | CPU s/pair | pairs/s (CPU) | pairs/s (wall) "
+          "| load average |\n|---|---|---|---|---|---|")
+    for which in ("baseline", "this tree"):
+        r = res[which]
+        name = f"{res['revision']} ({res['commit'][:8]})" if which == "baseline" else which
+        print(f"| {name} | {r['pairs']} | {r['cpu_seconds_per_pair']} | "
+              f"{r['cpu_pairs_per_second']} | {r['wall_pairs_per_second']} | "
+              f"{', '.join(map(str, r['load_average']))} |")
+
+
 def _main_end_to_end(args: argparse.Namespace) -> None:
     """Baseline revision and this tree, whole command, alternating; own results file."""
     if not args.baseline_rev:
@@ -310,14 +314,7 @@ def _main_end_to_end(args: argparse.Namespace) -> None:
     res["machine"] = {"cpus": os.cpu_count(), "load_average_at_start": load0,
                       "load_average_at_end": [round(x, 2) for x in os.getloadavg()]}
     out_path.write_text(json.dumps(res, indent=2) + "\n")
-    print("| whole command, 5000² pair, 1 thread | pairs | CPU s/pair | pairs/s (CPU) "
-          "| pairs/s (wall) | load average |\n|---|---|---|---|---|---|")
-    for which in ("baseline", "this tree"):
-        r = res[which]
-        name = f"{res['revision']} ({res['commit'][:8]})" if which == "baseline" else which
-        print(f"| {name} | {r['pairs']} | {r['cpu_seconds_per_pair']} | "
-              f"{r['cpu_pairs_per_second']} | {r['wall_pairs_per_second']} | "
-              f"{', '.join(map(str, r['load_average']))} |")
+    _print_baseline_table(res, "whole command, 5000² pair, 1 thread")
     print(f"results in {out_path.relative_to(ROOT)}")
 
 

@@ -313,6 +313,17 @@ def _source_window(m_grid: np.ndarray, out_win: Window, grid_shape: tuple[int, i
 # --------------------------------------------------------------------------- I/O
 
 
+def grid_shape(ref: Any, shape: tuple[int, int] | None, *, caller: str) -> tuple[int, int]:
+    """``(rows, cols)`` of the grid a reference is read on: ``shape`` when given, else the
+    size of the raster file ``ref`` (a reader callable has no size of its own)."""
+    if shape is None:
+        if callable(ref):
+            raise TypeError(f"{caller}: give shape when ref is a reader")
+        with rasterio.open(ref) as ds:
+            shape = (ds.height, ds.width)
+    return int(shape[0]), int(shape[1])
+
+
 def read_grey_window(path: str | os.PathLike[str], window: Window
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Grey level (BT.601 luma of RGB, float32) and valid mask of a window of a raster
@@ -523,12 +534,7 @@ def local_checks(ref: GreySource, movs: Mapping[str, GreySource], *, window_px: 
     from geosim.engine import parallel_map
 
     block = max(window_px, (block_px // window_px) * window_px)
-    if shape is None:
-        if callable(ref):
-            raise TypeError("local_checks: give shape when ref is a reader")
-        with rasterio.open(ref) as ds:
-            shape = (ds.height, ds.width)
-    height, width = int(shape[0]), int(shape[1])
+    height, width = grid_shape(ref, shape, caller="local_checks")
     tasks = [LocalCheckTask(ref, tuple(movs.items()), blk, window_px, min_confidence)
              for blk in iter_windows(width, height, block_px=block)
              if blk.width >= window_px and blk.height >= window_px]

@@ -37,7 +37,7 @@ from geosim.align.field import (
 from geosim.align.local import window_starts
 from geosim.errors import InputFileError
 from geosim.io.raster import write_geotiff
-from geosim.prepare.alignment import read_grey_window
+from geosim.prepare.alignment import grid_shape, read_grey_window
 from geosim.prepare.onewarp import ComposedWarp
 
 #: Window side and step (UAV px) of the local field's phase correlation.
@@ -83,12 +83,7 @@ def measure_local_shifts(ref: GreySource, mov: GreySource, *, shape: tuple[int, 
         Centres in the rasters' pixel-centre coordinates; every window ``accepted`` or
         ``unmeasured`` (apply :func:`geosim.align.field.reject_outliers` next).
     """
-    if shape is None:
-        if callable(ref):
-            raise TypeError("measure_local_shifts: give shape when ref is a reader")
-        with rasterio.open(ref) as ds:
-            shape = (ds.height, ds.width)
-    height, width = int(shape[0]), int(shape[1])
+    height, width = grid_shape(ref, shape, caller="measure_local_shifts")
     read_ref, read_mov = _grey_reader(ref), _grey_reader(mov)
     sr = window_starts(height, window_px, step_px)
     sc = window_starts(width, window_px, step_px)

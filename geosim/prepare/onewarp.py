@@ -344,9 +344,6 @@ class WarpRasterTask:
     block_px: int = 2048
     tags: Mapping[str, str] = field(default_factory=dict)
     what: str = "flight"
-    #: deflate level: 1 writes about 4× faster than GDAL's default 6 for ~10 % more bytes
-    #: (these are whole-flight working rasters; the tiles keep the default)
-    zlevel: int = 1
 
 
 @dataclass(frozen=True)
@@ -385,10 +382,9 @@ def warp_raster_task(task: WarpRasterTask) -> WarpRasterRecord:
         with create_geotiff(task.dst_path, width=cols, height=rows, count=len(bands),
                             dtype=dtype, crs=CRS.from_wkt(task.warp.site_crs_wkt), transform=t,
                             band_descriptions=band_descriptions(src, bands),
-                            tags=dict(task.tags), internal_mask=True,
-                            # no NUM_THREADS: GDAL's threaded writer orders blocks
-                            # differently, and files must not depend on the machine
-                            creation_options={"ZLEVEL": str(task.zlevel)}) as dst:
+                            # (no NUM_THREADS: GDAL's threaded writer orders blocks
+                            # differently, and files must not depend on the machine)
+                            tags=dict(task.tags), internal_mask=True) as dst:
             dst.colorinterp = [src.colorinterp[b - 1] for b in bands]
             for win in iter_windows(cols, rows, block_px=task.block_px):
                 wt = t @ Affine.translation(int(win.col_off), int(win.row_off))
