@@ -4,12 +4,15 @@ The "real" satellite scenes come from ``benchmarks/diagnose_generator.py``, whic
 imports nothing from geosim (each effect written again from its physics, blur applied
 on the 0.05 m grid before sampling). Cases come from every real image in
 ``../shared/realdata`` and the sample site, phi = 10, Q from 0.8 to 4.5, 0-3 effects,
-every 5th case a control. Seeds 1000 + i; odd seeds are the validation half, even seeds
-the development half (thresholds are tuned on development only). The diagnosis sees the
+every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1063 (thresholds are
+tuned on these only; in round 1 the odd ones were the validation half, and they have been
+seen in logs since, so they joined development). Validation half (round 2, fresh): the 32
+odd seeds 1065-1127, run only for the final report. The diagnosis sees the
 UAV image and the scene, calibrates Q by Laplacian variance, and is scored by the
 benchmark's own measures (exact effect names; its own spectral error).
 
 Run: python benchmarks/diagnose_independent.py [--cases N] [--only development|validation]
+(--cases N: the first N development cases; the validation half is always all 32.)
 Writes benchmarks/results/diagnose_independent.json and prints markdown tables.
 """
 
@@ -33,7 +36,8 @@ import diagnose_generator as gen  # noqa: E402
 
 REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
 SAMPLES = ROOT / "data" / "samples"
-N_CASES = 64
+N_CASES = 64  # development cases; validation: odd i in 65..127
+N_VALIDATION_LAST = 127
 
 
 def diagnose_case(case: gen.Case) -> dict[str, Any]:
@@ -108,7 +112,8 @@ def fmt_summary(name: str, s: dict[str, Any]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=N_CASES)
+    ap.add_argument("--cases", type=int, default=N_CASES,
+                    help="number of development cases (the first N)")
     ap.add_argument("--only", choices=("development", "validation"))
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"
                                          / "diagnose_independent.json"))
@@ -116,9 +121,10 @@ def main() -> None:
     sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
     if not sources:
         sys.exit(f"no real images under {REAL}; set GEOSIM_REALDATA")
-    idx = list(range(args.cases))
-    if args.only:
-        idx = [i for i in idx if ((1000 + i) % 2 == 1) == (args.only == "validation")]
+    first_val = gen.VALIDATION_FIRST_SEED - 1000
+    dev = list(range(min(args.cases, first_val)))
+    val = [i for i in range(first_val, N_VALIDATION_LAST + 1) if i % 2 == 1]
+    idx = {"development": dev, "validation": val}.get(args.only, dev + val)
     t0 = time.time()
     rows = run(idx, sources)
     halves = {h: gen.score([r for r in rows if r["split"] == h])
@@ -127,7 +133,8 @@ def main() -> None:
            "setup": {"phi": gen.PHI, "q_range": gen.Q_RANGE, "ranges": gen.RANGES,
                      "sources": [{"name": s.name, "gsd_m": s.gsd_m, "note": s.note}
                                  for s in sources],
-                     "n_cases": args.cases, "sat_px": 128, "seeds": "1000 + i; odd = validation"}}
+                     "n_cases": len(idx), "sat_px": 128,
+                     "seeds": "1000 + i; development 1000-1063, validation odd 1065-1127"}}
     p = Path(args.out)
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(out, indent=1, default=float))
