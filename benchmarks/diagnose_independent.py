@@ -115,6 +115,9 @@ def main() -> None:
     ap.add_argument("--cases", type=int, default=N_CASES,
                     help="number of development cases (the first N)")
     ap.add_argument("--only", choices=("development", "validation"))
+    ap.add_argument("--indices", type=lambda t: [int(v) for v in t.split(",")],
+                    help="comma-separated development case indices (0-63), e.g. to rerun "
+                         "the failures")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"
                                          / "diagnose_independent.json"))
     args = ap.parse_args()
@@ -125,6 +128,10 @@ def main() -> None:
     dev = list(range(min(args.cases, first_val)))
     val = [i for i in range(first_val, N_VALIDATION_LAST + 1) if i % 2 == 1]
     idx = {"development": dev, "validation": val}.get(args.only, dev + val)
+    if args.indices:
+        if max(args.indices) >= first_val:
+            sys.exit(f"--indices: development cases are 0-{first_val - 1}")
+        idx = args.indices
     t0 = time.time()
     rows = run(idx, sources)
     halves = {h: gen.score([r for r in rows if r["split"] == h])
