@@ -62,6 +62,7 @@ import numpy as np
 import scipy.fft
 
 from geosim.physics.otf import optics_otf
+from geosim.scratch import scratch_array
 
 Method = Literal["fast", "reference"]
 METHODS: tuple[str, ...] = ("fast", "reference")
@@ -378,7 +379,7 @@ def _taps_1331(even: np.ndarray, odd: np.ndarray, first: np.ndarray, last: np.nd
     return out
 
 
-def halve_binomial4_uint8(band: np.ndarray) -> np.ndarray:
+def halve_binomial4_uint8(band: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """One pyramid level of an even-sized uint8 band: [1, 3, 3, 1]/8 per axis, float32.
 
     The filter is centred on each 2 × 2 block (``BORDER_REFLECT``: x[−1] = x[0],
@@ -386,10 +387,12 @@ def halve_binomial4_uint8(band: np.ndarray) -> np.ndarray:
     ``sepFilter2D(band, [1, 3, 3, 1], anchor 1)[::2, ::2] / 64`` without the three
     quarters of the full-resolution filter that decimation throws away. Sums of 64
     uint8 values are exact in int16; rows are done in strips that stay in cache.
+    ``out``: a float32 (rows / 2, cols / 2) array to write into (default: a new one).
     """
     rows, cols = band.shape
     n_out = rows // 2
-    out = np.empty((n_out, cols // 2), np.float32)
+    if out is None:
+        out = np.empty((n_out, cols // 2), np.float32)
     for j0 in range(0, n_out, _STRIP_ROWS):
         j1 = min(j0 + _STRIP_ROWS, n_out)
         above = band[2 * j0 - 1] if j0 > 0 else band[0]
@@ -414,7 +417,7 @@ def _level_power(data: np.ndarray, f_cut: float) -> int:
     return 0
 
 
-def reduce_band_limited(band: np.ndarray, q_phi: float
+def reduce_band_limited(band: np.ndarray, q_phi: float, *, reuse_buffers: bool = False
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Halve a band while keeping its DCT-II coefficients below the cutoff 1/(Qφ).
 
@@ -435,6 +438,9 @@ def reduce_band_limited(band: np.ndarray, q_phi: float
         (rows, cols) image, DN.
     q_phi
         Q × φ: the optics cutoff is 1 / (Q φ) cycles per pixel of ``band``.
+    reuse_buffers
+        Compute the levels in this thread's reused scratch arrays (:mod:`geosim.scratch`):
+        the reduced band returned is then valid only until the next such call.
 
     Returns
     -------
@@ -447,18 +453,24 @@ def reduce_band_limited(band: np.ndarray, q_phi: float
     data = np.asarray(band)
     gains = [np.ones(data.shape[0]), np.ones(data.shape[1])]
     f_cut = 1.0 / q_phi
+    level = 0
     while all(n % 2 == 0 and n >= 16 for n in data.shape):
         power = _level_power(data, f_cut)
         if power == 0:
             break
         rows, cols = data.shape
+        level += 1
+        halved = (scratch_array(f"degrade.level{level}", (rows // 2, cols // 2), np.float32)
+                  if reuse_buffers else np.empty((rows // 2, cols // 2), np.float32))
         if power == 3:  # integer sums of 64 uint8 values: exact in int16
-            halved = halve_binomial4_uint8(data)
+            halve_binomial4_uint8(data, out=halved)
         else:
+            full = (scratch_array(f"degrade.level{level}.filtered", (rows, cols), np.float32)
+                    if reuse_buffers else None)
             smooth = cv2.sepFilter2D(data.astype(np.float32, copy=False), cv2.CV_32F,
-                                     _BINOMIAL_6, _BINOMIAL_6, anchor=(2, 2),
+                                     _BINOMIAL_6, _BINOMIAL_6, dst=full, anchor=(2, 2),
                                      borderType=cv2.BORDER_REFLECT)
-            halved = np.ascontiguousarray(smooth[::2, ::2])
+            np.copyto(halved, smooth[::2, ::2])
         for axis, n in enumerate((rows, cols)):
             k = np.arange(n // 2)
             gains[axis] = (gains[axis][:n // 2] * np.cos(np.pi * k / (2.0 * n)) ** power
@@ -520,13 +532,16 @@ class SpectralDegrader:
 
     def _truncated_dct(self, band: np.ndarray) -> np.ndarray:
         k_r, k_c = self.n_coef
-        reduced, gain_rows, gain_cols = reduce_band_limited(band, self.q_min * self.phi)
+        reduced, gain_rows, gain_cols = reduce_band_limited(band, self.q_min * self.phi,
+                                                            reuse_buffers=True)
+        mine = reduced is not band  # a scratch level: transformed in place
         # row transforms, then column transforms of the k_c kept columns only
         partial = np.empty((reduced.shape[0], k_c), np.float32)
         for r0 in range(0, reduced.shape[0], _ROW_BLOCK):
             block = reduced[r0:r0 + _ROW_BLOCK].astype(np.float32, copy=False)
             partial[r0:r0 + _ROW_BLOCK] = scipy.fft.dct(
-                block, type=2, norm="ortho", axis=1, workers=self._workers)[:, :k_c]
+                block, type=2, norm="ortho", axis=1, workers=self._workers,
+                overwrite_x=mine)[:, :k_c]
         coef = scipy.fft.dct(partial, type=2, norm="ortho", axis=0,
                              workers=self._workers)[:k_r]
         if reduced is not band:  # coefficients of a pyramid level: divide its gains out

@@ -402,7 +402,7 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
     # "non-zero = valid" is used): 0.026 → 0.016 s CPU for a 5000² mask
     with rasterio.Env(GDAL_NUM_THREADS=str(warp_threads()),
                       GDAL_TIFF_INTERNAL_MASK_TO_8BIT=False):
-        tile = read_raster(src, what="UAV tile")
+        tile = read_raster(src, what="UAV tile", reuse_buffers=True)
     rows, cols = tile.shape
     if uav_gsd_m is not None and not math.isclose(abs(tile.transform.a), uav_gsd_m,
                                                    rel_tol=1e-6):

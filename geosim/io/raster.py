@@ -22,12 +22,14 @@ import numpy as np
 import rasterio
 from affine import Affine
 from rasterio.crs import CRS
+from rasterio.enums import MaskFlags
 from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
 from geosim.errors import InputFileError, RasterError
 from geosim.io.cog import cog_writer
 from geosim.io.paths import relative_if_inside
+from geosim.scratch import scratch_array
 
 BLOCK_PX = 256
 
@@ -86,15 +88,32 @@ def image_band_indexes(ds: rasterio.DatasetReader) -> list[int]:
     return [i for i in range(1, ds.count + 1) if i != alpha]
 
 
-def read_valid_mask(ds: rasterio.DatasetReader, window: Window | None = None) -> np.ndarray:
+def read_valid_mask(ds: rasterio.DatasetReader, window: Window | None = None, *,
+                    out: np.ndarray | None = None) -> np.ndarray:
     """Valid-data mask (True = valid) from alpha, nodata or the internal mask.
 
     GDAL's dataset mask combines all three; a pixel is valid when it is non-zero.
+
+    Parameters
+    ----------
+    out
+        Bool (rows, cols) array to write the mask into (e.g. one reused from tile to
+        tile, :mod:`geosim.scratch`); the raw mask is then decoded into a reused buffer
+        too, so no new memory is touched.
     """
     alpha = alpha_band_index(ds)
+    if out is None:
+        raw = ds.read(alpha, window=window) if alpha is not None else \
+            ds.dataset_mask(window=window)
+        return raw > 0
+    raw = scratch_array("raster.read_valid_mask", out.shape, np.uint8)
     if alpha is not None:
-        return ds.read(alpha, window=window) > 0
-    return ds.dataset_mask(window=window) > 0
+        ds.read(alpha, window=window, out=raw)
+    elif all(MaskFlags.per_dataset in flags for flags in ds.mask_flag_enums):
+        ds.read_masks(1, window=window, out=raw)  # every band's mask is the dataset mask
+    else:
+        raw[...] = ds.dataset_mask(window=window)
+    return np.greater(raw, 0, out=out)
 
 
 @dataclass(frozen=True)
@@ -139,7 +158,8 @@ class RasterData:
 def read_window(ds: rasterio.DatasetReader, window: Window | None = None, *,
                 bands: Sequence[int] | None = None, max_bands: int | None = None,
                 out_dtype: Any = None, boundless: bool = False,
-                path: str | os.PathLike[str] | None = None) -> RasterData:
+                path: str | os.PathLike[str] | None = None, out: np.ndarray | None = None,
+                valid_out: np.ndarray | None = None) -> RasterData:
     """Read image bands and the valid mask of an opened raster (or of a window of it).
 
     Parameters
@@ -159,6 +179,10 @@ def read_window(ds: rasterio.DatasetReader, window: Window | None = None, *,
         invalid (the first band's mask decides validity there).
     path
         Recorded in :attr:`RasterData.path` (default: the dataset's name).
+    out, valid_out
+        Arrays to decode the image bands ``(bands, rows, cols)``, of ``out_dtype`` or the
+        file's type, and the bool mask ``(rows, cols)`` into, instead of new ones (e.g.
+        reused from tile to tile, :mod:`geosim.scratch`); not for boundless reads.
     """
     idx = list(bands) if bands is not None else image_band_indexes(ds)
     if max_bands is not None:
@@ -168,11 +192,13 @@ def read_window(ds: rasterio.DatasetReader, window: Window | None = None, *,
         and window.col_off + window.width <= ds.width
         and window.row_off + window.height <= ds.height)
     if outside:
+        if out is not None or valid_out is not None:
+            raise ValueError("out / valid_out are not supported for a boundless read")
         array = ds.read(idx, window=window, boundless=True, fill_value=0, out_dtype=out_dtype)
         valid = ds.read_masks(1, window=window, boundless=True) > 0
     else:
-        array = ds.read(idx, window=window, out_dtype=out_dtype)
-        valid = read_valid_mask(ds, window)
+        array = ds.read(idx, window=window, out_dtype=out_dtype, out=out)
+        valid = read_valid_mask(ds, window, out=valid_out)
     return RasterData(
         array=array, valid=valid,
         transform=ds.window_transform(window) if window is not None else ds.transform,
@@ -183,7 +209,8 @@ def read_window(ds: rasterio.DatasetReader, window: Window | None = None, *,
 def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
                 window: Window | None = None, bands: Sequence[int] | None = None,
                 max_bands: int | None = None, out_dtype: Any = None,
-                boundless: bool = False, require_crs: bool = True) -> RasterData:
+                boundless: bool = False, require_crs: bool = True,
+                reuse_buffers: bool = False) -> RasterData:
     """Open ``path`` (:func:`open_raster`) and :func:`read_window` it.
 
     Parameters
@@ -196,13 +223,27 @@ def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
         As for :func:`read_window`.
     require_crs
         Refuse a raster without a CRS (:func:`open_raster`).
+    reuse_buffers
+        Decode into this thread's reused scratch arrays (:mod:`geosim.scratch`) instead of
+        new ones: no fresh memory to fault in, but the arrays returned are valid only until
+        the next ``read_raster(..., reuse_buffers=True)`` in this thread.
     """
     from rasterio.errors import RasterioError
 
     with open_raster(path, what=what, require_crs=require_crs) as ds:
         try:
+            out = valid_out = None
+            if reuse_buffers and not boundless:
+                n = len(list(bands) if bands is not None else image_band_indexes(ds))
+                n = min(n, max_bands) if max_bands is not None else n
+                rows, cols = ((int(window.height), int(window.width)) if window is not None
+                              else (ds.height, ds.width))
+                dtype = out_dtype if out_dtype is not None else ds.dtypes[0]
+                out = scratch_array("read_raster.image", (n, rows, cols), dtype)
+                valid_out = scratch_array("read_raster.valid", (rows, cols), bool)
             return read_window(ds, window, bands=bands, max_bands=max_bands,
-                               out_dtype=out_dtype, boundless=boundless, path=path)
+                               out_dtype=out_dtype, boundless=boundless, path=path,
+                               out=out, valid_out=valid_out)
         except RasterioError as exc:  # a block cut short: GDAL names the bytes, not the file
             failure = read_failure(exc)
             if failure is None:
