@@ -434,3 +434,19 @@ def test_cli_degrade(tmp_path: Path) -> None:
     assert result.exit_code == 2
     result = runner.invoke(cli, ["degrade", str(toml), "--out", str(tmp_path / "empty")])
     assert result.exit_code == 2 and "geosim: error:" in result.output
+
+
+@pytest.mark.parametrize("shape", [(16, 16), (18, 30), (130, 258), (300, 202), (1024, 768)])
+def test_float_level_equals_opencv_filter_then_decimation(shape: tuple[int, int]) -> None:
+    # truth: OpenCV's separable [1, 5, 10, 10, 5, 1]/32 on the whole band (anchor 2,
+    # reflected border), kept at every other row and column; the level filters strips of
+    # rows (shapes above span several strips and a partial last one)
+    kernel = np.array([1, 5, 10, 10, 5, 1], np.float32) / 32
+    rng = np.random.default_rng(13)
+    for band in (rng.normal(100, 40, shape).astype(np.float32),
+                 rng.integers(0, 256, shape).astype(np.float32)):
+        full = cv2.sepFilter2D(band, cv2.CV_32F, kernel, kernel, anchor=(2, 2),
+                               borderType=cv2.BORDER_REFLECT)
+        got = core.halve_binomial6(band)
+        assert got.dtype == np.float32 and got.shape == (shape[0] // 2, shape[1] // 2)
+        np.testing.assert_array_equal(got, full[::2, ::2])
