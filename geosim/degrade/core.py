@@ -356,37 +356,24 @@ ALIAS_TOLERANCE = 5e-4
 # Binomial kernels of the levels, centred between samples 1 and 2 (anchor 1 / 2): sampled at
 # even outputs they are the block-centre filters [1, 3, 3, 1]/8 and [1, 5, 10, 10, 5, 1]/32.
 _BINOMIAL_6 = np.array([1, 5, 10, 10, 5, 1], np.float32) / 32
-#: Output rows per strip of :func:`halve_binomial4_uint8` (its int16 temporaries stay in cache).
+#: [1, 2, 1] and 4 × [1, 2, 1]: with a 2 × 2 block sum they make [1, 3, 3, 1] per axis.
+_TAPS_121 = np.array([1, 2, 1], np.float32)
+_TAPS_121_X4 = np.array([4, 8, 4], np.float32)
+#: Output rows per strip of the pyramid levels (their temporaries stay in cache).
 _STRIP_ROWS = 64
-
-
-def _taps_1331(even: np.ndarray, odd: np.ndarray, first: np.ndarray, last: np.ndarray,
-               axis: int) -> np.ndarray:
-    """[1, 3, 3, 1] on the block centres along ``axis``: x[2j−1] + 3x[2j] + 3x[2j+1] + x[2j+2].
-
-    ``even`` / ``odd`` are x[2j] / x[2j+1]; ``first`` stands for x[−1] before the first
-    block and ``last`` for x[2n] after the last one (int16 sums, exact below 32768).
-    """
-    out = np.add(even, odd, dtype=np.int16)
-    out *= 3
-    head, tail = [slice(None)] * 2, [slice(None)] * 2
-    head[axis], tail[axis] = slice(1, None), slice(None, -1)
-    out[tuple(head)] += odd[tuple(tail)]
-    out[tuple(tail)] += even[tuple(head)]
-    head[axis], tail[axis] = 0, -1
-    out[tuple(head)] += first
-    out[tuple(tail)] += last
-    return out
 
 
 def halve_binomial4_uint8(band: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """One pyramid level of an even-sized uint8 band: [1, 3, 3, 1]/8 per axis, float32.
 
     The filter is centred on each 2 × 2 block (``BORDER_REFLECT``: x[−1] = x[0],
-    x[N] = x[N−1]) and evaluated only there, so the result is
-    ``sepFilter2D(band, [1, 3, 3, 1], anchor 1)[::2, ::2] / 64`` without the three
-    quarters of the full-resolution filter that decimation throws away. Sums of 64
-    uint8 values are exact in int16; rows are done in strips that stay in cache.
+    x[N] = x[N−1]) and evaluated only there: the result is
+    ``sepFilter2D(band, [1, 3, 3, 1], anchor 1)[::2, ::2] / 64``. Since
+    [1, 3, 3, 1] = [1, 2, 1] ⊛ [1, 1], it is OpenCV's [1, 2, 1] filter on every pixel
+    (times 4: ≤ 16320, exact in int16) followed by the exact 2 × 2 block mean of
+    ``INTER_AREA`` (which rounds (4 s + 2) >> 2 = s, the block sum s of the [1, 2, 1]
+    sums, exactly), in strips of rows (each with the row above and below that the
+    filter reaches) whose int16 temporaries stay in cache.
     ``out``: a float32 (rows / 2, cols / 2) array to write into (default: a new one).
     """
     rows, cols = band.shape
@@ -395,13 +382,11 @@ def halve_binomial4_uint8(band: np.ndarray, out: np.ndarray | None = None) -> np
         out = np.empty((n_out, cols // 2), np.float32)
     for j0 in range(0, n_out, _STRIP_ROWS):
         j1 = min(j0 + _STRIP_ROWS, n_out)
-        above = band[2 * j0 - 1] if j0 > 0 else band[0]
-        below = band[2 * j1] if j1 < n_out else band[rows - 1]
-        strip = _taps_1331(band[2 * j0:2 * j1:2], band[2 * j0 + 1:2 * j1:2], above, below,
-                           axis=0)
-        even, odd = strip[:, 0::2], strip[:, 1::2]
-        both = _taps_1331(even, odd, even[:, 0], odd[:, -1], axis=1)
-        np.multiply(both, np.float32(1.0 / 64.0), out=out[j0:j1])
+        s0, s1 = max(2 * j0 - 1, 0), min(2 * j1 + 1, rows)
+        sums4 = cv2.sepFilter2D(band[s0:s1], cv2.CV_16S, _TAPS_121, _TAPS_121_X4,
+                                borderType=cv2.BORDER_REFLECT)[2 * j0 - s0:2 * j1 - s0]
+        block = cv2.resize(sums4, (cols // 2, j1 - j0), interpolation=cv2.INTER_AREA)
+        np.multiply(block, np.float32(1.0 / 64.0), out=out[j0:j1])
     return out
 
 
