@@ -450,3 +450,17 @@ def test_float_level_equals_opencv_filter_then_decimation(shape: tuple[int, int]
         got = core.halve_binomial6(band)
         assert got.dtype == np.float32 and got.shape == (shape[0] // 2, shape[1] // 2)
         np.testing.assert_array_equal(got, full[::2, ::2])
+    # the first level of a uint8 band (multiples of 1/64): the 5-tap + block-mean form is
+    # exact, so it gives the very same numbers
+    for band8 in (rng.integers(0, 256, shape, dtype=np.uint8), np.full(shape, 255, np.uint8)):
+        if shape[0] < 4 or shape[1] < 4:
+            continue
+        level1 = core.halve_binomial4_uint8(band8)
+        if level1.shape[0] % 2 or level1.shape[1] % 2:
+            continue
+        full = cv2.sepFilter2D(level1, cv2.CV_32F, kernel, kernel, anchor=(2, 2),
+                               borderType=cv2.BORDER_REFLECT)
+        out = np.full((level1.shape[0] // 2, level1.shape[1] // 2), np.nan, np.float32)
+        got = core.halve_binomial6(level1, out=out, exact_sums=True)
+        assert got is out
+        np.testing.assert_array_equal(got, full[::2, ::2])

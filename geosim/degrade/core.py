@@ -356,6 +356,7 @@ ALIAS_TOLERANCE = 5e-4
 # Binomial kernels of the levels, centred between samples 1 and 2 (anchor 1 / 2): sampled at
 # even outputs they are the block-centre filters [1, 3, 3, 1]/8 and [1, 5, 10, 10, 5, 1]/32.
 _BINOMIAL_6 = np.array([1, 5, 10, 10, 5, 1], np.float32) / 32
+_BINOMIAL_5 = np.array([1, 4, 6, 4, 1], np.float32) / 16  # ⊛ [1, 1] = _BINOMIAL_6
 #: [1, 2, 1] and 4 × [1, 2, 1]: with a 2 × 2 block sum they make [1, 3, 3, 1] per axis.
 _TAPS_121 = np.array([1, 2, 1], np.float32)
 _TAPS_121_X4 = np.array([4, 8, 4], np.float32)
@@ -390,7 +391,8 @@ def halve_binomial4_uint8(band: np.ndarray, out: np.ndarray | None = None) -> np
     return out
 
 
-def halve_binomial6(band: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+def halve_binomial6(band: np.ndarray, out: np.ndarray | None = None, *,
+                    exact_sums: bool = False) -> np.ndarray:
     """One pyramid level of an even-sized band: [1, 5, 10, 10, 5, 1]/32 per axis, float32.
 
     ``sepFilter2D(band, [1, 5, 10, 10, 5, 1]/32, anchor 2, BORDER_REFLECT)[::2, ::2]``,
@@ -398,6 +400,11 @@ def halve_binomial6(band: np.ndarray, out: np.ndarray | None = None) -> np.ndarr
     kernel reaches, so only the image's own edges are reflected): the filtered strip
     stays in cache instead of a full-size filtered band going through memory.
     ``out``: a float32 (rows / 2, cols / 2) array to write into (default: a new one).
+    ``exact_sums``: the band holds multiples of 1/64 in [0, 255] (the first level of a
+    uint8 band), so every weighted sum of the filter is exact in float32 (≤ 24 bits);
+    then [1, 5, 10, 10, 5, 1] = [1, 4, 6, 4, 1] ⊛ [1, 1] is computed as OpenCV's 5-tap
+    filter followed by the 2 × 2 block mean of ``INTER_AREA`` (also exact): the same
+    numbers for less work.
     """
     data = band.astype(np.float32, copy=False)
     rows, cols = data.shape
@@ -407,9 +414,18 @@ def halve_binomial6(band: np.ndarray, out: np.ndarray | None = None) -> np.ndarr
     for j0 in range(0, n_out, _STRIP_ROWS):
         j1 = min(j0 + _STRIP_ROWS, n_out)
         s0, s1 = max(2 * j0 - 2, 0), min(2 * j1 + 2, rows)
-        smooth = cv2.sepFilter2D(data[s0:s1], cv2.CV_32F, _BINOMIAL_6, _BINOMIAL_6,
-                                 anchor=(2, 2), borderType=cv2.BORDER_REFLECT)
-        out[j0:j1] = smooth[2 * j0 - s0:2 * j1 - s0:2, ::2]
+        if exact_sums:
+            smooth = cv2.sepFilter2D(data[s0:s1], cv2.CV_32F, _BINOMIAL_5, _BINOMIAL_5,
+                                     borderType=cv2.BORDER_REFLECT)[2 * j0 - s0:2 * j1 - s0]
+            dst = out[j0:j1]
+            block = cv2.resize(smooth, (cols // 2, j1 - j0), dst=dst,
+                               interpolation=cv2.INTER_AREA)
+            if block.ctypes.data != dst.ctypes.data:  # OpenCV did not write in place
+                dst[...] = block
+        else:
+            smooth = cv2.sepFilter2D(data[s0:s1], cv2.CV_32F, _BINOMIAL_6, _BINOMIAL_6,
+                                     anchor=(2, 2), borderType=cv2.BORDER_REFLECT)
+            out[j0:j1] = smooth[2 * j0 - s0:2 * j1 - s0:2, ::2]
     return out
 
 
@@ -462,6 +478,7 @@ def reduce_band_limited(band: np.ndarray, q_phi: float, *, reuse_buffers: bool =
     gains = [np.ones(data.shape[0]), np.ones(data.shape[1])]
     f_cut = 1.0 / q_phi
     level = 0
+    after_uint8_level = False
     while all(n % 2 == 0 and n >= 16 for n in data.shape):
         power = _level_power(data, f_cut)
         if power == 0:
@@ -472,8 +489,9 @@ def reduce_band_limited(band: np.ndarray, q_phi: float, *, reuse_buffers: bool =
                   if reuse_buffers else np.empty((rows // 2, cols // 2), np.float32))
         if power == 3:  # integer sums of 64 uint8 values: exact in int16
             halve_binomial4_uint8(data, out=halved)
-        else:
-            halve_binomial6(data, out=halved)
+        else:  # after a uint8 level the values are multiples of 1/64: exact float sums
+            halve_binomial6(data, out=halved, exact_sums=after_uint8_level)
+        after_uint8_level = power == 3
         for axis, n in enumerate((rows, cols)):
             k = np.arange(n // 2)
             gains[axis] = (gains[axis][:n // 2] * np.cos(np.pi * k / (2.0 * n)) ** power
