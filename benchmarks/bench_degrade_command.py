@@ -47,7 +47,13 @@ RESULT = ROOT / "benchmarks" / "results" / "bench_degrade_command.json"
 Q = 4.34
 
 
-def setup(root: Path, size: int, n_tiles: int) -> Path:
+#: ``--tile-codec``: COG options of the benchmark's input tiles (``deflate``: as ``geosim
+#: tile`` writes them; the others only measure what another codec of the tiles would change).
+TILE_CODECS = {"deflate": {}, "zstd": {"COMPRESS": "ZSTD", "LEVEL": 9},
+               "none": {"COMPRESS": "NONE", "PREDICTOR": "NO"}}
+
+
+def setup(root: Path, size: int, n_tiles: int, codec: str = "deflate") -> Path:
     """Write the site (flights = the tiles themselves), the run folder's tiles/."""
     from affine import Affine
 
@@ -63,7 +69,7 @@ def setup(root: Path, size: int, n_tiles: int) -> Path:
     for i in range(n_tiles):
         path = root / "run" / "tiles" / f"F{i}" / "r000_c000.tif"
         write_geotiff(path, np.roll(tile, 97 * i, axis=2), transform=t, crs="EPSG:32756",
-                      mask=np.ones(tile.shape[1:], bool))
+                      mask=np.ones(tile.shape[1:], bool), cog_overrides=TILE_CODECS[codec])
         lines += ['[[flights]]', f'id = "F{i}"', f'image = "{path}"',
                   f'acquired = "2021-07-15T1{i}:00:00+10:00"', '']
     (root / "site.toml").write_text("\n".join(lines))
@@ -148,6 +154,8 @@ def main() -> None:
     ap.add_argument("--baseline", type=Path,
                     help="another geosim checkout (e.g. main's code) whose command is timed "
                          "in the same rounds, on the same tiles")
+    ap.add_argument("--tile-codec", choices=sorted(TILE_CODECS), default="deflate",
+                    help="compression of the input tiles (default: as geosim tile writes them)")
     ap.add_argument("--out", type=Path, help=f"result JSON (default {RESULT} at --size 5000)")
     ap.add_argument("--child")
     ap.add_argument("--root", type=Path)
@@ -164,7 +172,8 @@ def main() -> None:
     rounds = []
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        setup(root, args.size, args.tiles)
+        setup(root, args.size, args.tiles, args.tile_codec)
+        tile_mb = (root / "run" / "tiles" / "F0" / "r000_c000.tif").stat().st_size / 1e6
         load_start = [round(x, 2) for x in os.getloadavg()]
         outputs: dict[str, np.ndarray] = {}
         for i in range(args.rounds):
@@ -191,6 +200,7 @@ def main() -> None:
     rows = {task: _median_row(r, mp) for task, r in runs.items()}
     doc = {"benchmark": "bench_degrade_command", "tile_px": args.size, "q": Q,
            "tiles_in_command": args.tiles, "rounds": args.rounds,
+           "tile_codec": args.tile_codec, "tile_file_mb": round(tile_mb, 1),
            "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
                        "load_average_at_start": load_start,
                        "load_average_at_end": [round(x, 2) for x in os.getloadavg()]},
