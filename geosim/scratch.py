@@ -2,8 +2,8 @@
 
 A freshly allocated array of tens of megabytes costs the kernel a page fault and a
 page zeroing per page on first touch; for a 5000 px RGB tile the degrade step
-touched ≈ 0.4 GB of new memory (decoded tile, mask, pyramid levels), ≈ 0.06–0.09 s
-of system time per tile, a fifth of its CPU (benchmarks/bench_degrade_command.py,
+touched ≈ 0.4 GB of new memory (decoded tile, mask, pyramid levels), ≈ 0.04–0.10 s
+of system time per tile, up to a fifth of its CPU (benchmarks/bench_degrade_command.py,
 docs/degradation.md). Buffers kept from the previous tile of the same size are
 already mapped.
 

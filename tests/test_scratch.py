@@ -107,8 +107,16 @@ def test_pyramid_levels_in_reused_buffers_equal_fresh_ones() -> None:
             np.testing.assert_array_equal(h_c, g_c)
     # the degrader's coefficients do not depend on what the buffers held before
     a, b = textured_rgb(640, 700, seed=1), textured_rgb(640, 700, seed=2)
-    first = core.SpectralDegrader(a, phi=10, q_min=4.34).degrade(4.34)
-    core.SpectralDegrader(b, phi=10, q_min=4.34)
+    fresh = core.SpectralDegrader(a, phi=10, q_min=4.34).degrade(4.34)
     release_scratch()
-    again = core.SpectralDegrader(a, phi=10, q_min=4.34).degrade(4.34)
-    np.testing.assert_array_equal(again, first)
+    first = core.SpectralDegrader(a, phi=10, q_min=4.34, reuse_buffers=True).degrade(4.34)
+    held = scratch_nbytes()
+    assert held > 0
+    core.SpectralDegrader(b, phi=10, q_min=4.34, reuse_buffers=True)
+    again = core.SpectralDegrader(a, phi=10, q_min=4.34, reuse_buffers=True).degrade(4.34)
+    np.testing.assert_array_equal(first, fresh)
+    np.testing.assert_array_equal(again, fresh)
+    assert scratch_nbytes() == held  # same size: the same buffers, nothing more held
+    core.SpectralDegrader(b, phi=10, q_min=4.34)  # not asked to: leaves the pool alone
+    assert scratch_nbytes() == held
+    release_scratch()

@@ -523,11 +523,15 @@ class SpectralDegrader:
         (rows, cols) bool mask, True = valid; None = all valid.
     obscuration
         Central obscuration, diameter ratio in [0, 1).
+    reuse_buffers
+        Compute the pyramid levels in this thread's reused scratch arrays
+        (:mod:`geosim.scratch`), which stay allocated for the next image: for many
+        images of one size (the tiles of a run); not for one-off large images.
     """
 
     def __init__(self, image: np.ndarray, *, phi: int = 10, q_min: float,
                  valid: np.ndarray | None = None, obscuration: float = 0.0,
-                 workers: int | None = None) -> None:
+                 workers: int | None = None, reuse_buffers: bool = False) -> None:
         self.phi = _check_phi(phi)
         self.q_min = _check_q(q_min)
         self.obscuration = _check_obscuration(obscuration)
@@ -543,6 +547,7 @@ class SpectralDegrader:
         self.n_coef = (n_coefficients(rows, q=self.q_min, phi=self.phi),
                        n_coefficients(cols, q=self.q_min, phi=self.phi))
         self._workers = workers
+        self._reuse = reuse_buffers
         fill = valid_b is not None and valid_b.any()
         # invalid pixels filled one band at a time: a float32 copy of one band, not of all
         # (the same numbers: fill_invalid treats each band on its own)
@@ -554,8 +559,8 @@ class SpectralDegrader:
     def _truncated_dct(self, band: np.ndarray) -> np.ndarray:
         k_r, k_c = self.n_coef
         reduced, gain_rows, gain_cols = reduce_band_limited(band, self.q_min * self.phi,
-                                                            reuse_buffers=True)
-        mine = reduced is not band  # a scratch level: transformed in place
+                                                            reuse_buffers=self._reuse)
+        mine = reduced is not band  # a level of our own, not the caller's band: in place
         # row transforms, then column transforms of the k_c kept columns only
         partial = np.empty((reduced.shape[0], k_c), np.float32)
         for r0 in range(0, reduced.shape[0], _ROW_BLOCK):
@@ -606,7 +611,8 @@ class SpectralDegrader:
 
 def degrade_array(image: np.ndarray, *, q: float, phi: int = 10,
                   valid: np.ndarray | None = None, method: Method = "fast",
-                  obscuration: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                  obscuration: float = 0.0, reuse_buffers: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Simulate a satellite image: (image ⊛ PSF(q)) ↓φ, bicubic.
 
     Parameters
@@ -625,6 +631,8 @@ def degrade_array(image: np.ndarray, *, q: float, phi: int = 10,
         after rounding.
     obscuration
         Central obscuration of the telescope, diameter ratio in [0, 1).
+    reuse_buffers
+        ``"fast"``: pyramid levels in reused scratch arrays (:class:`SpectralDegrader`).
 
     Returns
     -------
@@ -652,5 +660,6 @@ def degrade_array(image: np.ndarray, *, q: float, phi: int = 10,
         out[:, ~valid_out] = 0.0
     else:
         out = SpectralDegrader(stack, phi=phi, q_min=q, valid=valid_b,
-                               obscuration=obscuration).degrade(q)
+                               obscuration=obscuration,
+                               reuse_buffers=reuse_buffers).degrade(q)
     return (out[0] if arr.ndim == 2 else out), valid_out

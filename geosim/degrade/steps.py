@@ -415,7 +415,8 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
         raise RasterError(f"{src}: {cols} × {rows} px is smaller than one "
                           f"satellite pixel ({phi} × {phi} px)")
     degraded, valid_out = degrade_array(tile.array, q=q, phi=phi, valid=tile.valid,
-                                        method=method, obscuration=obscuration)
+                                        method=method, obscuration=obscuration,
+                                        reuse_buffers=True)
     out = to_dtype(degraded, tile.array.dtype)
     names = list(tile.band_names)
     write_geotiff(dst, out, transform=degraded_transform(tile.transform, phi), crs=tile.crs,
