@@ -106,13 +106,14 @@ def read_valid_mask(ds: rasterio.DatasetReader, window: Window | None = None, *,
         raw = ds.read(alpha, window=window) if alpha is not None else \
             ds.dataset_mask(window=window)
         return raw > 0
-    raw = scratch_array("raster.read_valid_mask", out.shape, np.uint8)
-    if alpha is not None:
+    if alpha is not None:  # in the alpha band's own type: a cast could round 0 < a < 1 to 0
+        raw = scratch_array("raster.read_valid_mask", out.shape, ds.dtypes[alpha - 1])
         ds.read(alpha, window=window, out=raw)
     elif all(MaskFlags.per_dataset in flags for flags in ds.mask_flag_enums):
+        raw = scratch_array("raster.read_valid_mask", out.shape, np.uint8)
         ds.read_masks(1, window=window, out=raw)  # every band's mask is the dataset mask
     else:
-        raw[...] = ds.dataset_mask(window=window)
+        raw = ds.dataset_mask(window=window)
     return np.greater(raw, 0, out=out)
 
 
@@ -224,23 +225,23 @@ def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
     require_crs
         Refuse a raster without a CRS (:func:`open_raster`).
     reuse_buffers
-        Decode into this thread's reused scratch arrays (:mod:`geosim.scratch`) instead of
-        new ones: no fresh memory to fault in, but the arrays returned are valid only until
-        the next ``read_raster(..., reuse_buffers=True)`` in this thread.
+        Decode a whole raster (no ``window``) into this thread's reused scratch arrays
+        (:mod:`geosim.scratch`) instead of new ones: no fresh memory to fault in, but the
+        arrays returned are valid only until the next ``read_raster(...,
+        reuse_buffers=True)`` in this thread.
     """
     from rasterio.errors import RasterioError
 
     with open_raster(path, what=what, require_crs=require_crs) as ds:
         try:
             out = valid_out = None
-            if reuse_buffers and not boundless:
-                n = len(list(bands) if bands is not None else image_band_indexes(ds))
-                n = min(n, max_bands) if max_bands is not None else n
-                rows, cols = ((int(window.height), int(window.width)) if window is not None
-                              else (ds.height, ds.width))
-                dtype = out_dtype if out_dtype is not None else ds.dtypes[0]
-                out = scratch_array("read_raster.image", (n, rows, cols), dtype)
-                valid_out = scratch_array("read_raster.valid", (rows, cols), bool)
+            if reuse_buffers and window is None:
+                idx = list(bands) if bands is not None else image_band_indexes(ds)
+                idx = idx[:max_bands] if max_bands is not None else idx
+                dtype = out_dtype if out_dtype is not None else ds.dtypes[idx[0] - 1]
+                out = scratch_array("read_raster.image", (len(idx), ds.height, ds.width),
+                                    dtype)
+                valid_out = scratch_array("read_raster.valid", (ds.height, ds.width), bool)
             return read_window(ds, window, bands=bands, max_bands=max_bands,
                                out_dtype=out_dtype, boundless=boundless, path=path,
                                out=out, valid_out=valid_out)
