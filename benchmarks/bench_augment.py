@@ -30,12 +30,14 @@ times the whole command instead (``run_augment`` on a run folder of one 5000² p
 the GeoTIFF tiles, augment, write the GeoTIFF outputs, YOLO labels and CSVs), and only that.
 
 Writes benchmarks/results/bench_augment.json and prints a markdown table.
-Usage: ``python benchmarks/bench_augment.py [--quick] [--baseline-rev main [--end-to-end]]``.
+Usage: ``python benchmarks/bench_augment.py [--quick] [--baseline-rev main] [--end-to-end
+[--outputs N] [--rounds R] [--compress deflate,none]] [--out FILE]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import os
@@ -152,24 +154,28 @@ def _all_applied(p: Pipeline) -> Pipeline:
     return replace(p, steps=tuple(replace(s, probability=1.0) for s in p.steps))
 
 
-def end_to_end_one_thread(size: int, n: int, first_seed: int = 0) -> dict:
+def end_to_end_one_thread(size: int, n: int, first_seed: int = 0,
+                          compress: str | None = None) -> dict:
     """The whole command (``run_augment``, GeoTIFF in/out) with whatever geosim is importable.
 
-    One pair, ``n`` outputs, seed ``first_seed``; OpenCV at one thread as on a worker.
+    One pair, ``n`` outputs, seed ``first_seed``; OpenCV at one thread as on a worker;
+    ``compress``: the GeoTIFF compression (``None``: the code's default, for revisions
+    without the option).
     """
     a, b = _pair(size)
     before = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
         load = os.getloadavg()[0]
-        r = _end_to_end(size, n, a, b, seed=first_seed + 1)
+        r = _end_to_end(size, n, a, b, seed=first_seed + 1, compress=compress)
     finally:
         cv2.setNumThreads(before)
     return {**r, "cpu_pairs_per_second": round(1 / r["cpu_seconds_per_pair"], 3),
             "load_average": round(load, 2)}
 
 
-def _end_to_end(size: int, n: int, a: AugImage, b: AugImage, seed: int = 1) -> dict:
+def _end_to_end(size: int, n: int, a: AugImage, b: AugImage, seed: int = 1,
+                compress: str | None = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp) / "run"
         gsd = 0.05 if size >= 5000 else 0.05 * 5000 / size
@@ -188,13 +194,60 @@ def _end_to_end(size: int, n: int, a: AugImage, b: AugImage, seed: int = 1) -> d
                         "path_a", "path_b", "minx", "miny", "maxx", "maxy", "crs"])
             w.writerow(["p0", "r000_c000", "PA1", "PA2", "", "", "tiles/PA1/r000_c000.tif",
                         "tiles/PA2/r000_c000.tif", 0, 0, 1, 1, "EPSG:32756"])
-        t0, c0 = time.perf_counter(), time.process_time()
-        s = run_augment(d / "pairs.csv", load_pipeline(), n=n, out_dir=Path(tmp) / "aug",
-                        seed=seed)
-        dt, cpu = time.perf_counter() - t0, time.process_time() - c0
+        with _stage_timer() as stages:
+            t0, c0 = time.perf_counter(), time.process_time()
+            s = run_augment(d / "pairs.csv", load_pipeline(), n=n,
+                            out_dir=Path(tmp) / "aug", seed=seed, **_compress_kw(compress))
+            dt, cpu = time.perf_counter() - t0, time.process_time() - c0
+        sizes = sorted((Path(tmp) / "aug" / "images").iterdir())
+        image_mb = sum(f.stat().st_size for f in sizes) / len(sizes) / 1e6
+    per_pair = {k: round(v / n, 4) for k, v in stages.items()}
+    per_pair["other"] = round(cpu / n - sum(per_pair.values()), 4)
     return {"pairs": n, "seconds": round(dt, 3), "pairs_per_second": round(n / dt, 3),
             "seconds_per_pair": round(dt / n, 4), "cpu_seconds_per_pair": round(cpu / n, 4),
-            "boxes_out": s["boxes_out"]}
+            "cpu_seconds_per_pair_by_stage": per_pair, "image_mb": round(image_mb, 2),
+            "compress": compress, "boxes_out": s["boxes_out"]}
+
+
+def _compress_kw(compress: str | None) -> dict:
+    """``compress=`` for ``run_augment`` when given (a baseline revision may lack it)."""
+    return {} if compress is None else {"compress": compress}
+
+
+@contextlib.contextmanager
+def _stage_timer():  # type: ignore[no-untyped-def]
+    """CPU seconds spent in each stage of the command, by wrapping what the runner calls.
+
+    Stages: ``read`` (source tiles), ``augment`` (the pipeline), ``write_images``,
+    ``write_labels`` (YOLO), ``write_meta`` (per-pair JSON, the summary) and
+    ``write_csv`` (manifest, parameters.csv); the rest of the command is ``other``.
+    """
+    from geosim.augment import runner
+
+    targets = {"read": (runner, "read_tile"), "augment": (runner.Pipeline, "apply"),
+               "write_images": (runner, "write_image"), "write_labels": (runner, "write_yolo"),
+               "write_meta": (runner, "write_json"), "write_csv": (runner, "write_csv")}
+    spent = dict.fromkeys(targets, 0.0)
+    saved = []
+
+    def wrap(stage: str, func):  # type: ignore[no-untyped-def]
+        def timed(*args, **kwargs):  # type: ignore[no-untyped-def]
+            c0 = time.process_time()
+            try:
+                return func(*args, **kwargs)
+            finally:
+                spent[stage] += time.process_time() - c0
+        return timed
+
+    for stage, (owner, name) in targets.items():
+        func = owner.__dict__[name]
+        saved.append((owner, name, func))
+        setattr(owner, name, wrap(stage, func))
+    try:
+        yield spent
+    finally:
+        for owner, name, func in saved:
+            setattr(owner, name, func)
 
 
 def _baseline_and_current(rev: str, n: int, func: str = "shipped_one_thread") -> dict:
@@ -231,7 +284,16 @@ def main() -> None:
     ap.add_argument("--baseline-rev", default=None,
                     help="git revision to time the shipped 5000 px pipeline of, in the same run")
     ap.add_argument("--end-to-end", action="store_true",
-                    help="with --baseline-rev: time only the whole command (GeoTIFF in/out)")
+                    help="time only the whole command (GeoTIFF in/out), with --baseline-rev "
+                    "also that revision's, alternating")
+    ap.add_argument("--outputs", type=int, default=None,
+                    help="--end-to-end: outputs per command run (--n; default 3, 2 with --quick)")
+    ap.add_argument("--rounds", type=int, default=2,
+                    help="--end-to-end: alternating rounds (default 2)")
+    ap.add_argument("--compress", default="deflate,none",
+                    help="--end-to-end: GeoTIFF compressions of this tree to time (default "
+                    "deflate,none)")
+    ap.add_argument("--out", default=None, help="results JSON (default: benchmarks/results/)")
     args = ap.parse_args()
     if args.end_to_end:
         _main_end_to_end(args)
@@ -273,8 +335,9 @@ def main() -> None:
         del a, b
     results["machine"]["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
     results["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(results, indent=2) + "\n")
+    out_path = Path(args.out) if args.out else OUT
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(results, indent=2) + "\n")
     print()
     if "baseline" in results:
         _print_baseline_table(results["baseline"], "5000 shipped, 1 thread")
@@ -288,7 +351,7 @@ def main() -> None:
     m = results["machine"]
     print(f"\n{m['cpus']} CPUs, load average {m['load_average_at_start'][0]} at start, "
           f"{m['load_average_at_end'][0]} at end (shared machine: wall times include waiting); "
-          f"peak RSS {results['peak_rss_mb']} MB; results in {OUT.relative_to(ROOT)}")
+          f"peak RSS {results['peak_rss_mb']} MB; results in {out_path}")
 
 
 def _print_baseline_table(res: dict, title: str) -> None:
@@ -304,18 +367,60 @@ def _print_baseline_table(res: dict, title: str) -> None:
 
 
 def _main_end_to_end(args: argparse.Namespace) -> None:
-    """Baseline revision and this tree, whole command, alternating; own results file."""
-    if not args.baseline_rev:
-        raise SystemExit("--end-to-end needs --baseline-rev REV")
-    out_path = OUT.with_name("bench_augment_end_to_end.json")
+    """The whole command: baseline revision (optional) and this tree, alternating."""
+    out_path = Path(args.out) if args.out else OUT.with_name("bench_augment_end_to_end.json")
+    outputs = args.outputs or (2 if args.quick else 3)
+    variants = [v.strip() for v in args.compress.split(",") if v.strip()]
     load0 = [round(x, 2) for x in os.getloadavg()]
-    res = _baseline_and_current(args.baseline_rev, 4 if args.quick else 6,
-                                func="end_to_end_one_thread")
+    codes: list[tuple[str, str | None]] = [("this tree", v) for v in variants]
+    res: dict = {"case": "end_to_end_one_thread", "outputs_per_command": outputs,
+                 "rounds": args.rounds, "runs": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.baseline_rev:
+            res["revision"] = args.baseline_rev
+            res["commit"] = _export_revision(args.baseline_rev, Path(tmp))
+            codes.insert(0, ("baseline", None))
+        for rnd in range(args.rounds):  # same seeds for every code in a round
+            for which, compress in codes:
+                label = which if compress is None else f"{which}, compress={compress}"
+                r = (_baseline_one_thread(Path(tmp), 5000, outputs, rnd * outputs,
+                                          "end_to_end_one_thread")
+                     if which == "baseline" else
+                     end_to_end_one_thread(5000, outputs, rnd * outputs, compress))
+                res["runs"].append({"round": rnd, "code": label, **r})
+                print(f"whole command, 5000², {label} (round {rnd}): {r}", flush=True)
+    labels = list(dict.fromkeys(r["code"] for r in res["runs"]))
+    res["summary"] = {}
+    for label in labels:
+        runs = [r for r in res["runs"] if r["code"] == label]
+        pairs = sum(r["pairs"] for r in runs)
+        cpu = sum(r["cpu_seconds_per_pair"] * r["pairs"] for r in runs)
+        wall = sum(r["seconds"] for r in runs)
+        stages = {k: round(sum(r["cpu_seconds_per_pair_by_stage"][k] * r["pairs"]
+                               for r in runs) / pairs, 3)
+                  for k in runs[0]["cpu_seconds_per_pair_by_stage"]}
+        res["summary"][label] = {
+            "pairs": pairs, "cpu_seconds_per_pair": round(cpu / pairs, 3),
+            "cpu_pairs_per_second": round(pairs / cpu, 3),
+            "wall_pairs_per_second": round(pairs / wall, 3),
+            "cpu_seconds_per_pair_by_stage": stages,
+            "image_mb": round(sum(r["image_mb"] for r in runs) / len(runs), 2),
+            "load_average": [r["load_average"] for r in runs]}
     res["machine"] = {"cpus": os.cpu_count(), "load_average_at_start": load0,
                       "load_average_at_end": [round(x, 2) for x in os.getloadavg()]}
+    out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(res, indent=2) + "\n")
-    _print_baseline_table(res, "whole command, 5000² pair, 1 thread")
-    print(f"results in {out_path.relative_to(ROOT)}")
+    stage_names = list(next(iter(res["summary"].values()))["cpu_seconds_per_pair_by_stage"])
+    print(f"| whole command, 5000² pair, 1 thread | pairs | CPU s/pair | "
+          f"{' | '.join(stage_names)} | pairs/s (CPU) | pairs/s (wall) | MB/image | load |")
+    print("|---" * (8 + len(stage_names)) + "|")
+    for label, r in res["summary"].items():
+        name = f"{res['revision']} ({res['commit'][:8]})" if label == "baseline" else label
+        st = " | ".join(str(r["cpu_seconds_per_pair_by_stage"][k]) for k in stage_names)
+        print(f"| {name} | {r['pairs']} | {r['cpu_seconds_per_pair']} | {st} | "
+              f"{r['cpu_pairs_per_second']} | {r['wall_pairs_per_second']} | "
+              f"{r['image_mb']} | {', '.join(map(str, r['load_average']))} |")
+    print(f"results in {out_path}")
 
 
 if __name__ == "__main__":

@@ -28,21 +28,21 @@ from typing import Any
 
 import cv2
 import numpy as np
+import rasterio
 from affine import Affine
 
 from geosim.augment.geometry import Boxes
 from geosim.augment.pipeline import AugImage
 from geosim.errors import InputFileError, LabelError, OutputError, RasterError
 from geosim.io.atomic import atomic_path, write_text
-from geosim.io.cog import cog_writer
 from geosim.io.georef import Georef
 from geosim.io.raster import (
     BLOCK_PX,
     alpha_band_index,
     image_band_indexes,
     open_raster,
-    read_raster,
-    write_geotiff,
+    read_failure,
+    read_valid_mask,
 )
 from geosim.prepare.pairs import COLUMNS
 from geosim.rundir import YOLO_SUBDIRS, RunDir
@@ -153,21 +153,40 @@ def tile_and_label_paths(run_dir: Path, row: PairRow, resolution: str
 def read_tile(path: Path, *, what: str) -> Tile:
     """Read a tile's image bands and valid mask (a tile is small enough to hold whole).
 
+    The bands are read straight into a pixel-interleaved ``(rows, cols, bands)`` buffer
+    (the layout of the file, of OpenCV and of the outputs), handed on as its
+    ``(bands, rows, cols)`` view, so neither the read nor the pipeline changes the layout.
     Float64 rasters are read as float32; other unsupported dtypes are refused.
     """
+    from rasterio.enums import MaskFlags
+    from rasterio.errors import RasterioError
+
     with open_raster(path, what=what, require_crs=False) as ds:
         bands = image_band_indexes(ds)
         dtype = np.dtype(ds.dtypes[bands[0] - 1])
         georef = None
         if ds.crs is not None and ds.transform != Affine.identity():
             georef = Georef.of_dataset(ds, path=path)
-    if dtype == np.float64:
-        dtype = np.dtype(np.float32)
-    if dtype not in (np.uint8, np.uint16, np.int16, np.float32):
-        raise RasterError(f"{what}: {path} has data type {dtype}; augmentation supports "
-                          "uint8, uint16, int16 and float32 images; convert it first")
-    data = read_raster(path, what=what, out_dtype=dtype, require_crs=False)
-    return Tile(path, AugImage(data.array, data.valid), georef, data.band_names)
+        if dtype == np.float64:
+            dtype = np.dtype(np.float32)
+        if dtype not in (np.uint8, np.uint16, np.int16, np.float32):
+            raise RasterError(f"{what}: {path} has data type {dtype}; augmentation supports "
+                              "uint8, uint16, int16 and float32 images; convert it first")
+        hwc = np.empty((ds.height, ds.width, len(bands)), dtype)
+        try:
+            ds.read(bands, out=np.moveaxis(hwc, -1, 0))
+            if alpha_band_index(ds) is None and all(
+                    MaskFlags.all_valid in ds.mask_flag_enums[i - 1] for i in bands):
+                valid = np.ones(hwc.shape[:2], bool)  # no mask, alpha or nodata
+            else:
+                valid = read_valid_mask(ds)
+        except RasterioError as exc:  # a block cut short: GDAL names the bytes, not the file
+            failure = read_failure(exc)
+            if failure is None:
+                raise
+            raise type(failure)(f"{path}: {failure}") from exc
+        names = tuple(ds.descriptions[i - 1] for i in bands)
+    return Tile(path, AugImage(np.moveaxis(hwc, -1, 0), valid), georef, names)
 
 
 def read_yolo(path: Path, shape: tuple[int, int]) -> Boxes | None:
@@ -213,17 +232,32 @@ def write_yolo(path: Path, boxes: Boxes, shape: tuple[int, int]) -> Path:
     return write_text(path, "".join(lines))
 
 
+#: ``--compress`` choices for augmented GeoTIFFs: GDAL creation options of each. Deflate
+#: level 1 (libdeflate) with the horizontal predictor is lossless and about half the raw
+#: size; ``none`` costs no encoding and is the fastest to load (twice the disk).
+TIFF_COMPRESSION: dict[str, dict[str, Any]] = {
+    "deflate": {"compress": "deflate", "zlevel": 1},
+    "none": {"compress": "none"},
+}
+
+
 def write_image(path: Path, img: AugImage, *, georef: Georef | None,
-                tags: Mapping[str, str], band_descriptions: Sequence[str | None] = ()
-                ) -> Path:
-    """Write an augmented image as GeoTIFF (``.tif``) or PNG (``.png``), atomically.
+                tags: Mapping[str, str], band_descriptions: Sequence[str | None] = (),
+                compress: str = "deflate") -> Path:
+    """Write an augmented image as a tiled GeoTIFF (``.tif``) or a PNG (``.png``), atomically.
+
+    The GeoTIFF is a plain tiled, pixel-interleaved GeoTIFF with an internal valid mask,
+    not a COG: augmented images are training data, read whole by a trainer, and most
+    carry no georeference, so overviews would serve nobody (docs/augmentation.md).
 
     Parameters
     ----------
     path
         Output path; the suffix picks the format.
     img
-        Image and valid mask (written as an internal mask band, or PNG alpha).
+        Image and valid mask (written as an internal mask band, or PNG alpha). The image
+        may be a ``(bands, rows, cols)`` view of a pixel-interleaved buffer (as the
+        pipeline returns it): GDAL reads it through its strides, no copy.
     georef
         Georeference to write, or ``None`` to write none (pixels off the map grid).
     tags
@@ -231,30 +265,35 @@ def write_image(path: Path, img: AugImage, *, georef: Georef | None,
         and per-pair JSON).
     band_descriptions
         Band names (GeoTIFF).
+    compress
+        GeoTIFF compression, a key of :data:`TIFF_COMPRESSION`.
     """
     if path.suffix.lower() == ".png":
         return _write_png(path, img)
-    desc = [d or f"band {i}" for i, d in enumerate(band_descriptions, start=1)] or None
-    if georef is not None:
-        return write_geotiff(path, img.image, transform=georef.transform, crs=georef.rasterio_crs(),
-                             mask=img.mask, band_descriptions=desc, tags=dict(tags))
+    if compress not in TIFF_COMPRESSION:
+        raise ValueError(f"compress must be one of {', '.join(TIFF_COMPRESSION)}")
     arr = img.image
     count, rows, cols = arr.shape
     tiled = rows >= BLOCK_PX and cols >= BLOCK_PX
     profile: dict[str, Any] = {
         "driver": "GTiff", "width": cols, "height": rows, "count": count,
-        "dtype": arr.dtype.name, "compress": "deflate", "interleave": "pixel",
-        "predictor": 3 if arr.dtype.kind == "f" else 2, "tiled": tiled, "BIGTIFF": "IF_SAFER",
+        "dtype": arr.dtype.name, "interleave": "pixel", "tiled": tiled,
+        "BIGTIFF": "IF_SAFER", **TIFF_COMPRESSION[compress],
     }
+    if compress != "none":
+        profile["predictor"] = 3 if arr.dtype.kind == "f" else 2
     if tiled:
         profile.update(blockxsize=BLOCK_PX, blockysize=BLOCK_PX)
-    with _quiet_georef(), cog_writer(path, profile, internal_mask=True) as dst:
-        if desc:
-            for i, d in enumerate(desc, start=1):
-                dst.set_band_description(i, d)
+    if georef is not None:
+        profile.update(crs=georef.rasterio_crs(), transform=georef.transform)
+    desc = [d or f"band {i}" for i, d in enumerate(band_descriptions, start=1)]
+    with (_quiet_georef(), rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), atomic_path(path) as tmp,
+          rasterio.open(tmp, "w", **profile) as dst):
+        for i, d in enumerate(desc, start=1):
+            dst.set_band_description(i, d)
         dst.update_tags(**dict(tags))
         dst.write(arr)
-        dst.write_mask(img.mask.astype(np.uint8) * 255)
+        dst.write_mask(np.multiply(img.mask.view(np.uint8), 255, dtype=np.uint8))
     return path
 
 
@@ -275,11 +314,17 @@ def _write_png(path: Path, img: AugImage) -> Path:
     if arr.dtype not in (np.uint8, np.uint16) or arr.shape[0] not in (1, 3):
         raise OutputError(f"{path}: PNG holds 1 or 3 bands of uint8/uint16, not "
                           f"{arr.shape[0]} bands of {arr.dtype}; write GeoTIFF (--format tif)")
-    rgb = np.repeat(arr, 3, axis=0) if arr.shape[0] == 1 else arr
-    alpha = (img.mask * np.iinfo(arr.dtype).max).astype(arr.dtype)[np.newaxis]
-    bgra = np.ascontiguousarray(np.moveaxis(np.concatenate([rgb[::-1], alpha]), 0, -1))
+    hwc = np.moveaxis(arr, 0, -1)
+    if not hwc.flags.c_contiguous:
+        hwc = np.ascontiguousarray(hwc)
+    # RGB (or grey) -> BGRA with alpha = full scale, then alpha 0 where invalid (the
+    # colour there is already 0)
+    code = cv2.COLOR_GRAY2BGRA if hwc.shape[-1] == 1 else cv2.COLOR_RGB2BGRA
+    bgra = cv2.cvtColor(hwc, code)
+    if not img.mask.all():
+        cv2.bitwise_and(bgra, 0, dst=bgra, mask=np.logical_not(img.mask).view(np.uint8))
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), bgra):
+        if not cv2.imwrite(str(tmp), bgra, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
             raise OutputError(f"{path}: PNG encoding failed; check the folder is writable")
     return path
 

@@ -41,7 +41,6 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from geosim.augment import photometric as photo
@@ -58,9 +57,9 @@ from geosim.augment.geometry import Boxes, BoxTrack, is_identity
 from geosim.augment.resample import (
     INTERPOLATION,
     affine_resample_hwc,
+    bands_last_view,
     interleave,
     permute_exact,
-    planar,
     remap_resample_hwc,
     zero_invalid,
 )
@@ -85,7 +84,11 @@ class AugImage:
     Attributes
     ----------
     image
-        ``(bands, rows, cols)`` pixel values (uint8, uint16, int16 or float32).
+        ``(bands, rows, cols)`` pixel values (uint8, uint16, int16 or float32). It may be
+        a view of a pixel-interleaved ``(rows, cols, bands)`` buffer
+        (``np.moveaxis(hwc, -1, 0)``): tiles are read that way, the pipeline works in
+        that layout and returns its images as such views, and the writers take them as
+        they are (no layout pass anywhere between the file read and the file written).
     mask
         ``(rows, cols)`` bool, True where the data are valid.
     boxes
@@ -350,10 +353,11 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
              min_visible_fraction: float) -> tuple[AugImage, list[dict[str, Any]], int]:
     """Run one image's operations, fusing consecutive affine and photometric ones.
 
-    The image is interleaved to ``(rows, cols, bands)`` once, at the first stage
-    that interpolates or changes values, goes through every later stage in that
-    layout (OpenCV's), and is split back into bands once. Exact pixel permutations
-    (flips, quarter turns) before that run on the bands-first image.
+    An image that is a view of a pixel-interleaved buffer is worked on in that layout
+    (OpenCV's) from the start. A contiguous bands-first image is interleaved once, at the
+    first stage that interpolates or changes values (exact pixel permutations, flips and
+    quarter turns, before that run on the bands-first image). An interleaved result is
+    returned as its ``(bands, rows, cols)`` view (no split pass).
     """
     ops = list(ops)
     mask = img.mask
@@ -362,6 +366,9 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
     dn_max = photo.dn_max_for(img.image.dtype)
     hwc = img.image  # bands-first until interleaved; never modified in place
     interleaved = False
+    view = bands_last_view(img.image)
+    if view is not None:
+        hwc, interleaved = view, True
     chain: list[dict[str, Any]] = []
     affine = np.eye(3)
     affine_names: list[str] = []
@@ -385,14 +392,11 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
                           "matrix_px": affine.tolist()})
         affine, affine_names = np.eye(3), []
 
-    def flush_pixel(last: bool = False) -> None:
-        nonlocal hwc, pixel_ops, interleaved
+    def flush_pixel() -> None:
+        nonlocal hwc, pixel_ops
         if pixel_ops:
             to_interleaved()
-            # the last stage writes bands-first output directly (no separate split pass)
-            hwc = _photometric_stage(hwc, mask, [op for _, op in pixel_ops], dn_max,
-                                     bands_first=last)
-            interleaved = not last
+            hwc = _photometric_stage(hwc, mask, [op for _, op in pixel_ops], dn_max)
             chain.append({"kind": "photometric", "functions": [n for n, _ in pixel_ops]})
         pixel_ops = []
 
@@ -422,9 +426,11 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
             flush_affine()
             pixel_ops.append((name, op))
     flush_affine()
-    flush_pixel(last=True)
+    flush_pixel()
     # never hand back the caller's arrays
-    image = planar(hwc) if interleaved else (hwc.copy() if hwc is img.image else hwc)
+    if np.may_share_memory(hwc, img.image):
+        hwc = hwc.copy()
+    image = np.moveaxis(hwc, -1, 0) if interleaved else hwc
     mask = mask.copy() if mask is img.mask else mask
     boxes, kept = track.to_boxes(min_visible_fraction=min_visible_fraction)
     return AugImage(image, mask, boxes), chain, int((~kept).sum())
@@ -449,7 +455,7 @@ def _merge_hsv(ops: Sequence[PixelOp]) -> list[PixelOp]:
 
 
 def _photometric_stage(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp],
-                       dn_max: float, *, bands_first: bool = False) -> np.ndarray:
+                       dn_max: float) -> np.ndarray:
     """Apply photometric ops in float32, row block by row block (bounded memory).
 
     ``hwc`` is the interleaved ``(rows, cols, bands)`` image. Each block is
@@ -457,33 +463,20 @@ def _photometric_stage(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp]
     per-band arithmetic are single OpenCV passes on that layout) and is rounded
     back to the image dtype once. Each op with a seed gets one generator per image,
     consumed block after block in a fixed order, so the result does not depend on
-    anything but the seeds. Invalid pixels are set to 0. Returns a new array,
-    ``(bands, rows, cols)`` if ``bands_first`` (each block split into the bands
-    while in cache), else interleaved.
+    anything but the seeds. Invalid pixels are set to 0. Returns a new interleaved
+    array.
     """
     ops = _merge_hsv(ops)
     rngs = [np.random.default_rng(op.seed) if op.seed is not None else None for op in ops]
-    rows, cols, bands = hwc.shape
-    out = np.empty((bands, rows, cols) if bands_first else hwc.shape, hwc.dtype)
-    all_valid = bool(mask.all())
+    rows = hwc.shape[0]
+    out = np.empty(hwc.shape, hwc.dtype)
     for r0 in range(0, rows, BLOCK_ROWS):
         block = slice(r0, min(rows, r0 + BLOCK_ROWS))
         work = photo.to_work(hwc[block])
         for op, rng in zip(ops, rngs, strict=True):
             work = op.func(work, dn_max, rng)
-        if not bands_first:
-            photo.from_work(work, hwc.dtype, out=out[block])
-            continue
-        done = photo.from_work(work, hwc.dtype)
-        planes = [out[i, block] for i in range(bands)]
-        if bands > 1:
-            cv2.split(done, planes)  # writes into the output's bands
-        else:
-            planes[0][...] = done[..., 0]
-        if not all_valid:
-            for plane in planes:
-                plane *= mask[block]
-    return out if bands_first else zero_invalid(out, mask)
+        photo.from_work(work, hwc.dtype, out=out[block])
+    return zero_invalid(out, mask)
 
 
 def flatten_records(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:

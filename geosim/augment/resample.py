@@ -21,7 +21,8 @@ import numpy as np
 
 from geosim.augment.geometry import integer_permutation, is_identity, to_cv2_inverse
 
-__all__ = ["INTERPOLATION", "affine_resample", "affine_resample_hwc", "interleave",
+__all__ = ["INTERPOLATION", "affine_resample", "affine_resample_hwc", "bands_last_view",
+           "interleave",
            "permute_exact", "planar", "remap_resample", "remap_resample_hwc", "zero_invalid"]
 
 #: OpenCV interpolation flags by name.
@@ -45,6 +46,16 @@ def _check(image: np.ndarray, mask: np.ndarray) -> None:
     if image.dtype not in _CV2_DTYPES:
         raise ValueError(f"unsupported image dtype {image.dtype}; use uint8, uint16, int16 "
                          "or float32")
+
+
+def bands_last_view(image: np.ndarray) -> np.ndarray | None:
+    """The contiguous ``(rows, cols, bands)`` array a ``(bands, rows, cols)`` image views, or None.
+
+    An image read pixel-interleaved (as :func:`geosim.augment.io.read_tile` reads tiles)
+    is handed around as ``np.moveaxis(hwc, -1, 0)``; this gives ``hwc`` back, no copy.
+    """
+    hwc = np.moveaxis(image, 0, -1)
+    return hwc if hwc.flags.c_contiguous else None
 
 
 def interleave(image: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ import numpy as np
 
 from geosim.augment.geometry import Boxes
 from geosim.augment.io import (
+    TIFF_COMPRESSION,
     PairRow,
     Tile,
     read_pairs,
@@ -99,6 +100,7 @@ class AugmentPairTask:
     seed: int
     resolution: str
     fmt: str
+    compress: str = "deflate"
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,8 @@ def augment_pair_task(task: AugmentPairTask) -> AugmentPairDone:
         res = pipeline.apply(tile_a.data, tile_b.data, output_rng(seed, row.pair_id, k),
                              length_scale=scale)
         manifest.append(_write_outputs(task.out, aug_id, row, k, res, (tile_a, tile_b),
-                                       task.run_dir, fmt=task.fmt, seed=seed,
+                                       task.run_dir, fmt=task.fmt, compress=task.compress,
+                                       seed=seed,
                                        pipeline=pipeline, length_scale=scale))
         params_rows.append({"aug_id": aug_id, "pair_id": row.pair_id, "index": k,
                             "seed": seed, "length_scale": scale,
@@ -153,6 +156,7 @@ def _pair_key(task: AugmentPairTask) -> tuple[str, list[Path], dict[str, Any]]:
               if p.is_file()]
     params = {"step": "augment", "pipeline": task.pipeline.to_dict(), "n": task.n,
               "seed": task.seed, "resolution": task.resolution, "fmt": task.fmt,
+              "compress": task.compress,
               "row": dataclasses.asdict(task.row), "run_dir": str(Path(task.run_dir).resolve())}
     return f"pairs/{safe_name(task.row.pair_id)}", inputs, params
 
@@ -239,8 +243,8 @@ def check_augment_out(out: Path, overwrite: bool) -> None:
 
 def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int,
                 out_dir: str | os.PathLike[str], seed: int | None = None,
-                resolution: str = "uav", fmt: str = "tif", overwrite: bool = False,
-                ) -> dict[str, Any]:
+                resolution: str = "uav", fmt: str = "tif", compress: str = "deflate",
+                overwrite: bool = False) -> dict[str, Any]:
     """Augment every pair of a run folder ``n`` times.
 
     Parameters
@@ -258,7 +262,11 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
     resolution
         ``"uav"`` (tiles/, labels/yolo/) or ``"0.5m"`` (degraded/, labels/yolo_0.5m/).
     fmt
-        ``"tif"`` (GeoTIFF, default) or ``"png"`` (8/16-bit RGB with the mask as alpha).
+        ``"tif"`` (tiled GeoTIFF with internal mask, default) or ``"png"`` (8/16-bit RGB
+        with the mask as alpha).
+    compress
+        GeoTIFF compression: ``"deflate"`` (level 1 + predictor, lossless, default) or
+        ``"none"`` (no encoding: fastest to write and to load, about twice the disk).
     overwrite
         Replace the outputs of an earlier run in ``out_dir``.
 
@@ -271,6 +279,8 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
         raise ValueError("n must be >= 1")
     if fmt not in ("tif", "png"):
         raise ValueError("fmt must be 'tif' or 'png'")
+    if compress not in TIFF_COMPRESSION:
+        raise ValueError(f"compress must be one of {', '.join(TIFF_COMPRESSION)}")
     pairs_csv = Path(pairs_csv)
     run_dir = pairs_csv.parent
     out = Path(out_dir)
@@ -285,7 +295,7 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
               "off_grid_images": 0}
     t0 = time.perf_counter()
     tasks = [AugmentPairTask(run_dir, out, row, pipeline, n=n, seed=seed,
-                             resolution=resolution, fmt=fmt) for row in rows]
+                             resolution=resolution, fmt=fmt, compress=compress) for row in rows]
     n_skipped = reused_rows = 0
     for resumed in parallel_map(resumable_pair_task, tasks, desc="augment pairs"):
         done = resumed.done
@@ -307,7 +317,8 @@ def run_augment(pairs_csv: str | os.PathLike[str], pipeline: Pipeline, *, n: int
     split = _write_split(out, manifest, classes, seed=seed)
     summary: dict[str, Any] = {
         "pairs": len(rows), "outputs_per_pair": n, "augmented_pairs": len(manifest),
-        "seed": seed, "resolution": resolution, "format": fmt, **counts,
+        "seed": seed, "resolution": resolution, "format": fmt,
+        "compress": compress if fmt == "tif" else None, **counts,
         "seconds": round(seconds, 3),
         "pairs_per_second": (round((len(manifest) - reused_rows) / seconds, 3)
                              if seconds > 0 else None),
@@ -335,7 +346,8 @@ def _write_split(out: Path, manifest: list[dict[str, Any]], classes: str, *, see
 
 
 def _write_outputs(out: Path, aug_id: str, row: PairRow, k: int, res: AugmentResult,
-                   tiles: tuple[Tile, Tile], run_dir: Path, *, fmt: str, seed: int,
+                   tiles: tuple[Tile, Tile], run_dir: Path, *, fmt: str, compress: str,
+                   seed: int,
                    pipeline: Pipeline, length_scale: float) -> dict[str, Any]:
     mrow: dict[str, Any] = {"aug_id": aug_id, "pair_id": row.pair_id, "tile_id": row.tile_id,
                             "flight_a": row.flight_a, "flight_b": row.flight_b, "index": k}
@@ -371,7 +383,7 @@ def _write_outputs(out: Path, aug_id: str, row: PairRow, k: int, res: AugmentRes
         if not on_grid:
             tags["GEOSIM_NOTE"] = OFF_GRID_NOTE
         write_image(out / rel_img, img, georef=geo if on_grid else None, tags=tags,
-                    band_descriptions=tile.band_descriptions)
+                    band_descriptions=tile.band_descriptions, compress=compress)
         write_yolo(out / rel_lab, img.boxes, img.shape)
         meta["images"][side] = info
         mrow.update({f"path_{side}": rel_img.as_posix(), f"labels_{side}": rel_lab.as_posix(),

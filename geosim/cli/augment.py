@@ -25,6 +25,9 @@ from geosim.cli.common import engine_options
               show_default=True, help="Augment the UAV tiles or the degraded 0.5 m tiles.")
 @click.option("--format", "fmt", type=click.Choice(["tif", "png"]), default="tif",
               show_default=True, help="Image format of the outputs.")
+@click.option("--compress", type=click.Choice(["deflate", "none"]), default="deflate",
+              show_default=True, help="GeoTIFF compression: deflate (lossless, about half the "
+              "size) or none (fastest to write and to load).")
 @click.option("--overwrite", is_flag=True, help="Replace an earlier run's outputs in --out.")
 @click.option("--plot-warp", "plot_warp", type=click.Path(path_type=Path, dir_okay=False),
               default=None, help="Instead: draw a local warp of this image and plot its "
@@ -36,7 +39,7 @@ from geosim.cli.common import engine_options
               help="--plot-warp: low-pass filter width, pixels of the image "
               "(default 10 % of its shorter side).")
 def augment(pairs_csv: Path | None, config_path: Path | None, n_per_pair: int, out_path: Path,
-            seed: int | None, resolution: str, fmt: str, overwrite: bool,
+            seed: int | None, resolution: str, fmt: str, compress: str, overwrite: bool,
             plot_warp: Path | None, max_px: float | None,
             filter_sigma_px: float | None) -> None:
     """Augment aligned pairs consistently (the paper's twelve functions), labels following.
@@ -51,7 +54,8 @@ def augment(pairs_csv: Path | None, config_path: Path | None, n_per_pair: int, o
     from geosim.record import command_record, record_path
 
     options = {"config": config_path, "n": n_per_pair, "seed": seed,
-               "resolution": resolution, "format": fmt, "overwrite": overwrite,
+               "resolution": resolution, "format": fmt, "compress": compress,
+               "overwrite": overwrite,
                "max_px": max_px, "filter_sigma_px": filter_sigma_px}
     if plot_warp is not None:  # --out is one PNG: the record goes beside it
         with command_record("augment", record_path(out_path, folder=False),
@@ -67,7 +71,8 @@ def augment(pairs_csv: Path | None, config_path: Path | None, n_per_pair: int, o
                         options=options) as rec:
         pipeline = load_pipeline(config_path)
         summary = run_augment(pairs_csv, pipeline, n=n_per_pair, out_dir=out_path, seed=seed,
-                              resolution=resolution, fmt=fmt, overwrite=overwrite)
+                              resolution=resolution, fmt=fmt, compress=compress,
+                              overwrite=overwrite)
         rec.summary = (f"augmented {summary['pairs']} pairs × {summary['outputs_per_pair']} = "
                        f"{summary['augmented_pairs']} pairs ({summary['pairs_per_second']} "
                        f"pairs/s, seed {summary['seed']}) → {summary['out_dir']}")
