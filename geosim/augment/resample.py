@@ -258,31 +258,44 @@ def remap_resample_hwc(hwc: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px
     inv = None if matrix is None or is_identity(matrix) else to_cv2_inverse(matrix)
     out = np.empty_like(hwc)
     out_mask = np.empty_like(mask)
-    col_idx = np.arange(cols, dtype=np.float32)[np.newaxis, :]
+    # (col, row) of every output pixel of a block of rows, one 2-channel float32 array
+    # (OpenCV's point-map layout); the row channel is moved down block by block
+    grid = np.empty((min(rows, REMAP_BLOCK_ROWS), cols, 2), np.float32)
+    grid[..., 0] = np.arange(cols, dtype=np.float32)
+    grid[..., 1] = np.arange(grid.shape[0], dtype=np.float32)[:, np.newaxis]
     for r0 in range(0, rows, REMAP_BLOCK_ROWS):
         r1 = min(rows, r0 + REMAP_BLOCK_ROWS)
-        # Maps for this block of output rows (bounded memory); the source is the whole image.
-        map_x = u_px[r0:r1].astype(np.float32, copy=True)
-        map_x += col_idx
-        map_y = v_px[r0:r1].astype(np.float32, copy=True)
-        map_y += np.arange(r0, r1, dtype=np.float32)[:, np.newaxis]
+        if r0:
+            grid[..., 1] += np.float32(REMAP_BLOCK_ROWS)
+        # Map for this block of output rows (bounded memory); the source is the whole
+        # image. Positions x + d(x), then through the pending affine if any: a 2-channel
+        # float map that OpenCV's remap takes as it is (it converts it to its fixed-point
+        # form internally, as cv2.convertMaps would, for each band at once).
+        xy = cv2.merge([u_px[r0:r1], v_px[r0:r1]])
+        cv2.add(xy, grid[:r1 - r0], dst=xy)
         inside = None
         if inv is not None:
-            # positions in the intermediate image -> source positions (OpenCV index frame),
-            # one 2-channel map transformed in one pass
-            xy = cv2.merge([map_x, map_y])
+            # positions in the intermediate image -> source positions (OpenCV index frame)
             inside = cv2.inRange(xy, (-0.5, -0.5), (cols - 0.5, rows - 0.5))  # 0 / 255
-            map_x, map_y = cv2.split(cv2.transform(xy, inv))
-        block_mask = cv2.remap(mask.view(np.uint8), map_x, map_y, cv2.INTER_NEAREST,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            xy = cv2.transform(xy, inv)
+        # remapped straight into the output rows (no block copy)
+        block_mask = out_mask[r0:r1].view(np.uint8)
+        cv2.remap(mask.view(np.uint8), xy, None, cv2.INTER_NEAREST, dst=block_mask,
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if inside is not None:
-            block_mask &= inside  # (0 / 1) & (0 / 255)
-        out_mask[r0:r1] = block_mask.view(bool)
-        if interpolation != "nearest":
-            # Fixed-point maps: computed once, reused for every band.
-            m1, m2 = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
-        else:
-            m1, m2 = map_x, map_y
-        out[r0:r1] = _per_channel(hwc, lambda a, m1=m1, m2=m2: cv2.remap(
-            a, m1, m2, INTERPOLATION[interpolation], borderMode=cv2.BORDER_REPLICATE))
+            cv2.bitwise_and(block_mask, inside, dst=block_mask)  # (0 / 1) & (0 / 255)
+        _remap_into(hwc, xy, out[r0:r1], INTERPOLATION[interpolation])
     return zero_invalid(out, out_mask), out_mask
+
+
+def _remap_into(hwc: np.ndarray, xy: np.ndarray, dst: np.ndarray, flag: int) -> None:
+    """``cv2.remap`` of every band of ``hwc`` through the 2-channel map ``xy`` into ``dst``."""
+    bands = hwc.shape[-1]
+    if bands <= _CV_MAX_CHANNELS:
+        src = hwc[..., 0] if bands == 1 else hwc
+        cv2.remap(src, xy, None, flag, dst=dst[..., 0] if bands == 1 else dst,
+                  borderMode=cv2.BORDER_REPLICATE)
+        return
+    for i in range(bands):
+        dst[..., i] = cv2.remap(np.ascontiguousarray(hwc[..., i]), xy, None, flag,
+                                borderMode=cv2.BORDER_REPLICATE)
