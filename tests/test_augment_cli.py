@@ -322,3 +322,24 @@ def test_one_and_two_workers_give_identical_outputs(run_dir: Path, tmp_path: Pat
             outs["2"] / "labels" / name).read_text()
     assert (outs["1"] / "parameters.csv").read_text() == (
         outs["2"] / "parameters.csv").read_text()
+
+
+def test_compress_none_writes_the_same_pixels_uncompressed(run_dir: Path, tmp_path: Path
+                                                           ) -> None:
+    """--compress none (fastest to write and to load) changes only the encoding."""
+    args = ("--pairs", run_dir / "pairs.csv", "--n", 1, "--seed", 9)
+    assert _invoke(*args, "--out", tmp_path / "d").exit_code == 0
+    res = _invoke(*args, "--out", tmp_path / "n", "--compress", "none")
+    assert res.exit_code == 0, res.output
+    assert json.loads((tmp_path / "n" / "augment.json").read_text())["compress"] == "none"
+    names = sorted(p.name for p in (tmp_path / "d" / "images").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "n" / "images").iterdir())
+    for name in names:
+        a, b = tmp_path / "d" / "images" / name, tmp_path / "n" / "images" / name
+        (da, ma, *_), (db, mb, *_) = _read(a), _read(b)
+        assert np.array_equal(da, db) and np.array_equal(ma, mb)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(a) as ds_a, rasterio.open(b) as ds_b:
+                assert ds_a.compression.value.lower() == "deflate"
+                assert ds_b.compression is None
