@@ -14,9 +14,10 @@ HSV
 OpenCV stores hue of *8-bit* images as 0–179 (degrees / 2) and so quantises
 hue to 2° steps: an 8-bit RGB → HSV → RGB round trip is lossy even without a
 shift. These kernels convert in float32 instead, where OpenCV's hue is in
-degrees ``[0, 360)`` and saturation and value in ``[0, 1]``; hue is shifted
-cyclically (``mod 360``), saturation and value are shifted in units of 1/255 and
-clipped to ``[0, 1]``.
+degrees ``[0, 360)``, saturation in ``[0, 1]`` and value in the image's DN (the float
+conversion is scale-free, so the image is not rescaled to ``[0, 1]``); hue is shifted
+cyclically (``mod 360``), saturation and value are shifted in units of 1/255 of full
+scale and clipped to it.
 """
 
 from __future__ import annotations
@@ -125,17 +126,17 @@ def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 
     if work.shape[-1] < 3:
         out = work + np.float32(value_dn * dn_max / 255.0)
         return np.clip(out, 0.0, dn_max, out=out)
-    rgb = work[..., :3] * np.float32(1.0 / dn_max)   # a new (rows, cols, 3) array
-    np.clip(rgb, 0.0, 1.0, out=rgb)
-    hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)       # H in [0, 360), S and V in [0, 1]
+    # OpenCV's float RGB -> HSV is scale-free: V comes out in the input's DN, S in [0, 1],
+    # H in degrees, so the image is not rescaled to [0, 1] and back (two passes fewer)
+    rgb = np.clip(work[..., :3], 0.0, dn_max)        # a new (rows, cols, 3) array
+    hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)       # H in [0, 360), S in [0, 1], V in DN
     # H + (hue mod 360) lies in [0, 720): OpenCV's float HSV → RGB takes the hue
     # modulo 360 (tested), so the shift is cyclic without a wrap pass.
-    cv2.add(hsv, (float(hue_deg % 360.0), saturation_dn / 255.0, value_dn / 255.0, 0.0),
-            dst=hsv)
-    cv2.min(hsv, (720.0, 1.0, 1.0, 0.0), dst=hsv)  # clip S and V to [0, 1]
+    cv2.add(hsv, (float(hue_deg % 360.0), saturation_dn / 255.0, value_dn * dn_max / 255.0,
+                  0.0), dst=hsv)
+    cv2.min(hsv, (720.0, 1.0, dn_max, 0.0), dst=hsv)  # clip S and V
     cv2.max(hsv, (0.0, 0.0, 0.0, 0.0), dst=hsv)
     back = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
-    back *= np.float32(dn_max)
     np.clip(back, 0.0, dn_max, out=back)
     if work.shape[-1] == 3:
         return back
