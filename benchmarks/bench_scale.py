@@ -128,25 +128,65 @@ def make_flight(path: Path, size: int, offset_px: tuple[float, float], error) ->
                 dst.write_mask(np.full((h, w), 255, np.uint8), window=win)
 
 
-def make_site(root: Path, size: int, tile_px: int) -> tuple[Path, str]:
-    """Write the three flights and site.toml under ``root``; return the site file."""
+#: Bump when the flights :func:`make_flights` writes change (invalidates --site-cache).
+SITE_VERSION = 1
+
+
+def make_flights(flight_dir: Path, size: int) -> dict[str, Path]:
+    """Write the three flights into ``flight_dir``; return their paths by id."""
     centre = (X0 + size * GSD_M / 2, Y0 - size * GSD_M / 2)
     flights = {
         "A": ((0.0, 0.0), _similarity(0.0, (0.0, 0.0), centre)),
         "B": ((0.3, 0.6), _similarity(0.0, (0.37, -0.21), centre)),
         "C": ((0.45, 0.15), _similarity(0.05, (-0.18, 0.29), centre)),
     }
-    (root / "flights").mkdir(parents=True, exist_ok=True)
+    flight_dir.mkdir(parents=True, exist_ok=True)
     for fid, (off, err) in flights.items():
-        make_flight(root / "flights" / f"{fid}.tif", size, off, err)
+        make_flight(flight_dir / f"{fid}.tif", size, off, err)
+    return {fid: flight_dir / f"{fid}.tif" for fid in flights}
+
+
+def cached_flights(cache: Path, size: int) -> tuple[dict[str, Path], bool]:
+    """The flights of a ``size`` site from ``cache`` (made there when absent or stale);
+    returns them and whether they were reused.
+
+    A stamp (``site.json``: generator version, size, imagery, file sizes) written after
+    the flights says the folder is complete; a folder without it is made again.
+    """
+    folder = cache / f"site_{size}"
+    stamp = folder / "site.json"
+    want = {"site_version": SITE_VERSION, "size": size, "imagery": _texture_period()[2]}
+    if stamp.is_file():
+        doc = json.loads(stamp.read_text())
+        paths = {fid: folder / "flights" / f"{fid}.tif" for fid in doc.get("files", {})}
+        if ({k: doc.get(k) for k in want} == want and paths
+                and all(p.is_file() and p.stat().st_size == doc["files"][fid]
+                        for fid, p in paths.items())):
+            return paths, True
+        stamp.unlink()
+    paths = make_flights(folder / "flights", size)
+    stamp.write_text(json.dumps({**want, "files": {k: p.stat().st_size
+                                                   for k, p in paths.items()}}, indent=2))
+    return paths, False
+
+
+def make_site(root: Path, size: int, tile_px: int, cache: Path | None = None
+              ) -> tuple[Path, str, bool]:
+    """Write site.toml (and the three flights, or reuse them from ``cache``) under ``root``;
+    return the site file, the imagery's description and whether the flights were reused."""
+    if cache is None:
+        flights, reused = make_flights(root / "flights", size), False
+    else:
+        flights, reused = cached_flights(cache, size)
+    root.mkdir(parents=True, exist_ok=True)
     lines = ['[site]', 'name = "scale benchmark"', f'crs = "{CRS}"', 'reference_flight = "A"',
              '', '[parameters]', f'tile_px = {tile_px}', 'align_window_px = 2000',
              f'q = {Q_FIXED}', 'keep_partial_tiles = true', '']
-    for i, fid in enumerate(flights):
-        lines += ['[[flights]]', f'id = "{fid}"', f'image = "flights/{fid}.tif"',
+    for i, (fid, path) in enumerate(flights.items()):
+        lines += ['[[flights]]', f'id = "{fid}"', f'image = "{path.resolve().as_posix()}"',
                   f'acquired = "2021-07-15T{10 + i:02d}:00:00+10:00"', '']
     (root / "site.toml").write_text("\n".join(lines))
-    return root / "site.toml", _texture_period()[2]
+    return root / "site.toml", _texture_period()[2], reused
 
 
 # --------------------------------------------------------------------------- measuring
@@ -174,13 +214,21 @@ def child_step(step: str, site_file: str, out: str, workers: int | None) -> dict
             client.run(_warm_worker)
             rec["worker_warm_up_s"] = round(time.perf_counter() - t_start, 2)
         load0 = os.getloadavg()[0]
-        cpu0 = _cpu_seconds(client)
-        t0 = time.perf_counter()
-        run_pipeline(site, out, only=[step], echo=lambda s: None)
-        seconds = time.perf_counter() - t0
-        rec["cpu_s"] = round(_cpu_seconds(client) - cpu0, 2)
+        driver0, workers0 = _own_cpu_seconds(), _workers_cpu_seconds(client)
+        profile = os.environ.get("GEOSIM_BENCH_PROFILE")
+        with _task_stream(client) as stream, _profiled(profile, f"{step}_w{workers}"):
+            t0 = time.perf_counter()
+            doc = run_pipeline(site, out, only=[step], echo=lambda s: None)
+            seconds = time.perf_counter() - t0
+        rec["driver_cpu_s"] = round(_own_cpu_seconds() - driver0, 2)
+        rec["workers_cpu_s"] = round(_workers_cpu_seconds(client) - workers0, 2)
+        rec["cpu_s"] = round(rec["driver_cpu_s"] + rec["workers_cpu_s"], 2)
+        # the step function alone (without the runner's preflight, input checksums, run.json)
+        rec["step_s"] = doc["steps"][step]["seconds"]
         if client is not None:
             rec["worker_peak_rss_mb"] = sorted(client.run(_peak_rss_mb).values())
+            rec.update(_task_summary(stream.data if stream is not None else [], seconds,
+                                     len(rec["worker_peak_rss_mb"])))
     rec.update({"seconds": round(seconds, 2), "peak_rss_mb": _peak_rss_mb(),
                 "load_average_1min": [round(load0, 2), round(os.getloadavg()[0], 2)]})
     return rec
@@ -193,13 +241,54 @@ def _warm_worker() -> None:
     import geosim.prepare.steps  # noqa: F401
 
 
-def _cpu_seconds(client) -> float:
-    """CPU seconds (user + system) used so far by this process and the cluster's workers."""
-    t = os.times()
-    total = t.user + t.system
-    if client is not None:
-        total += sum(client.run(_own_cpu_seconds).values())
-    return total
+def _workers_cpu_seconds(client) -> float:
+    """CPU seconds (user + system) used so far by the cluster's workers (0 without one)."""
+    return sum(client.run(_own_cpu_seconds).values()) if client is not None else 0.0
+
+
+def _task_stream(client):
+    """Dask's record of every task (worker, start, stop) in the block; None in-process."""
+    import contextlib
+
+    if client is None:
+        return contextlib.nullcontext()
+    from distributed import get_task_stream
+
+    return get_task_stream(client)
+
+
+def _profiled(folder: str | None, name: str):
+    """cProfile of this process (the driver) into ``folder/name.prof`` when asked."""
+    import contextlib
+
+    if not folder:
+        return contextlib.nullcontext()
+
+    @contextlib.contextmanager
+    def prof():
+        import cProfile
+
+        pr = cProfile.Profile()
+        pr.enable()
+        try:
+            yield
+        finally:
+            pr.disable()
+            Path(folder).mkdir(parents=True, exist_ok=True)
+            pr.dump_stats(str(Path(folder) / f"{name}.prof"))
+
+    return prof()
+
+
+def _task_summary(tasks: list[dict], seconds: float, n_workers: int) -> dict:
+    """Tasks run, the workers' busy time (sum of task durations) and their busy fraction
+    of the step's wall time: 1.0 = every worker computed all along; the rest is the
+    driver's serial work, scheduling and idle workers."""
+    busy = sum(max(0.0, s["stop"] - s["start"]) for t in tasks
+               for s in t.get("startstops", ()) if s.get("action") == "compute")
+    return {"tasks": len(tasks), "worker_busy_s": round(busy, 2),
+            "worker_busy_fraction": round(busy / (n_workers * seconds), 3)
+            if seconds > 0 and n_workers else None}
 
 
 def _own_cpu_seconds() -> float:
@@ -292,24 +381,31 @@ def _same_outputs(a: Path, b: Path) -> bool:
     return bool(files)
 
 
-def run(size: int, tile_px: int, workers: list[int], keep: bool) -> dict:
+def run(size: int, tile_px: int, workers: list[int], keep: bool,
+        site_cache: Path | None = None, gdalwarp: bool = True) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="geosim-scale-"))
     try:
         t0 = time.perf_counter()
-        site_file, imagery = make_site(tmp / "site", size, tile_px)
+        site_file, imagery, reused = make_site(tmp / "site", size, tile_px, site_cache)
         make_s = time.perf_counter() - t0
+        print(f"site: {'reused from ' + str(site_cache) if reused else 'generated'} in "
+              f"{make_s:.1f} s", flush=True)
         rows: list[dict] = []
         for w in workers:
             rows += run_steps(site_file, tmp / f"run_w{w}", w, size, tile_px)
         out = tmp / f"run_w{workers[0]}"
         grid = json.loads((out / "grid" / "grid.json").read_text())
-        gw = run_gdalwarp(sorted((tmp / "site" / "flights").glob("*.tif")), tmp / "gdalwarp",
-                          grid)
+        from geosim.config import load_site
+
+        flights = [f.image for f in load_site(site_file).flights]
+        gw = (run_gdalwarp(flights, tmp / "gdalwarp", grid) if gdalwarp
+              else {"skipped": "--no-gdalwarp"})
         print(f"gdalwarp: {gw}", flush=True)
         n_tiles = len(list((out / "tiles").glob("*/*.tif")))
         same = (_same_outputs(out, tmp / f"run_w{workers[-1]}") if len(workers) > 1
                 else None)
         doc = summarise(rows, gw, size, tile_px, n_tiles, imagery, make_s, workers, same)
+        doc["site_reused_from_cache"] = reused
     finally:
         if keep:
             print(f"kept {tmp}")
@@ -345,6 +441,10 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
         doc["speedup"] = {s: round(by[(w1, s)]["seconds"] / by[(wn, s)]["seconds"], 2)
                           for s in STEPS}
         doc["speedup_of"] = f"{wn} workers vs {w1}"
+        # the step function alone, without the runner's per-command preflight and checksums
+        doc["speedup_step_alone"] = {
+            s: round(by[(w1, s)]["step_s"] / by[(wn, s)]["step_s"], 2) for s in STEPS
+            if by[(wn, s)].get("step_s")}
     if n_tiles:
         doc["extrapolation"] = {}
         for w in workers:
@@ -366,20 +466,25 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
 def markdown(doc: dict) -> str:
     lines = [f"{doc['flights']} flights of {doc['flight_px']}² px ({doc['imagery']}), tiles of "
              f"{doc['tile_px']} px, {doc['machine']['cpus']} CPUs", "",
-             "| step | workers | time (s) | MP/s | CPU-s | load (start→end) | peak RSS driver "
-             "(MB) | peak RSS per worker (MB) | written (MB) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| step | workers | time (s) | step alone (s) | MP/s | CPU-s | driver CPU-s | "
+             "workers busy | load (start→end) | peak RSS driver (MB) | peak RSS per worker "
+             "(MB) | written (MB) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in doc["steps"]:
         rss_w = ", ".join(f"{m:.0f}" for m in r.get("worker_peak_rss_mb", [])) or "–"
         load = "→".join(f"{v:.1f}" for v in r["load_average_1min"])
-        lines.append(f"| {r['step']} | {r['workers']} | {r['seconds']} | {r['mp_per_s']} | "
-                     f"{r['cpu_s']} | {load} | {r['peak_rss_mb']:.0f} | {rss_w} | "
-                     f"{r['bytes_written'] / 1e6:.0f} |")
+        busy = r.get("worker_busy_fraction")
+        lines.append(f"| {r['step']} | {r['workers']} | {r['seconds']} | {r.get('step_s', '–')} | "
+                     f"{r['mp_per_s']} | {r['cpu_s']} | {r.get('driver_cpu_s', '–')} | "
+                     f"{'–' if busy is None else f'{busy:.0%}'} | {load} | "
+                     f"{r['peak_rss_mb']:.0f} | {rss_w} | {r['bytes_written'] / 1e6:.0f} |")
     gw = doc["gdalwarp"]
     lines.append("")
     if "speedup" in doc:
         lines.append(f"Speed-up ({doc['speedup_of']}): "
                      + ", ".join(f"{k} {v}×" for k, v in doc["speedup"].items())
+                     + "; the step alone: "
+                     + ", ".join(f"{k} {v}×" for k, v in doc["speedup_step_alone"].items())
                      + f"; tiles and degraded tiles identical: "
                      f"{doc['outputs_identical_across_workers']}.")
     if "seconds" in gw:
@@ -406,6 +511,11 @@ def main() -> None:
                          "in-process, N > 1 on a local Dask cluster of N processes")
     ap.add_argument("--out", type=Path, default=RESULT)
     ap.add_argument("--keep", action="store_true", help="keep the temporary site and run")
+    ap.add_argument("--site-cache", type=Path,
+                    help="folder where the generated flights are kept and reused by later "
+                         "runs of the same --size (site generation: ~450 s at 20000 px)")
+    ap.add_argument("--no-gdalwarp", action="store_true",
+                    help="skip the gdalwarp comparison")
     ap.add_argument("--child")
     ap.add_argument("--site")
     ap.add_argument("--run")
@@ -414,7 +524,8 @@ def main() -> None:
         print(json.dumps(child_step(args.child, args.site, args.run, int(args.workers))))
         return
     workers = [int(w) for w in str(args.workers).split(",")]
-    doc = run(args.size, args.tile_px, workers, args.keep)
+    doc = run(args.size, args.tile_px, workers, args.keep, args.site_cache,
+              not args.no_gdalwarp)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(markdown(doc))

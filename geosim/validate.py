@@ -168,13 +168,23 @@ def check_out_dir(site: SiteConfig, out: str | os.PathLike[str]) -> Path:
 # ------------------------------------------------------------------------- rasters
 
 
-def _check_windows(ds: rasterio.DatasetReader) -> Iterator[rasterio.windows.Window]:
+def _check_step_rows(ds: rasterio.DatasetReader) -> int:
+    """Rows of one strip of check windows (a whole number of blocks)."""
+    block_rows = ds.block_shapes[0][0]
+    return max(block_rows, CHECK_WINDOW_PX // block_rows * block_rows)
+
+
+def _check_windows(ds: rasterio.DatasetReader, rows: tuple[int, int] | None = None
+                   ) -> Iterator[rasterio.windows.Window]:
+    """The check windows, row-major; only the strips starting in ``rows = (start, stop)``
+    when given."""
     from rasterio.windows import Window
 
-    block_rows, block_cols = ds.block_shapes[0]
-    step_r = max(block_rows, CHECK_WINDOW_PX // block_rows * block_rows)
+    block_cols = ds.block_shapes[0][1]
+    step_r = _check_step_rows(ds)
     step_c = max(block_cols, CHECK_WINDOW_PX // block_cols * block_cols)
-    for r in range(0, ds.height, step_r):
+    start, stop = rows if rows is not None else (0, ds.height)
+    for r in range(start, min(stop, ds.height), step_r):
         for c in range(0, ds.width, step_c):
             yield Window(c, r, min(step_c, ds.width - c), min(step_r, ds.height - r))
 
@@ -196,8 +206,12 @@ def _first_bad_block(ds: rasterio.DatasetReader, window: rasterio.windows.Window
     return (-1, -1), window, "read failed"
 
 
-def check_raster_readable(ds: rasterio.DatasetReader, what: str) -> int:
+def check_raster_readable(ds: rasterio.DatasetReader, what: str,
+                          rows: tuple[int, int] | None = None) -> int:
     """Read every block of every band once (window by window); refuse a corrupt file.
+
+    ``rows = (start, stop)`` reads only the window strips starting in those rows
+    (``start`` a multiple of the strip height), so a raster can be checked in parts.
 
     Returns
     -------
@@ -211,7 +225,7 @@ def check_raster_readable(ds: rasterio.DatasetReader, what: str) -> int:
         and its pixel offsets) and GDAL's reason.
     """
     n = 0
-    for window in _check_windows(ds):
+    for window in _check_windows(ds, rows):
         try:
             ds.read(window=window)
         except Exception:  # noqa: BLE001 - located below, block by block
@@ -325,17 +339,64 @@ def check_extents(extents: Extents, *, uav_gsd_m: float) -> Bounds:
 # ------------------------------------------------------------------------- all
 
 
+#: Pixels (per band) of one engine task of the integrity read: large flights are read in
+#: parts, in parallel on the workers.
+CHECK_TASK_PX = 64 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class ReadCheckTask:
+    """Rows ``rows = (start, stop)`` of one raster to read in full (an engine task)."""
+
+    path: str
+    what: str
+    rows: tuple[int, int]
+
+
+def read_check_task(task: ReadCheckTask) -> str | None:
+    """Run a :class:`ReadCheckTask`; the error message of its first unreadable block, or
+    None (returned, not raised, so that the caller reports the first one in file order
+    whichever task finished first)."""
+    from geosim.io.raster import open_raster
+
+    try:
+        with open_raster(task.path, what=task.what) as ds:
+            check_raster_readable(ds, task.what, task.rows)
+    except RasterError as exc:
+        return str(exc)
+    return None
+
+
 def check_rasters(site: SiteConfig) -> None:
-    """Band layout, data type and a full block-by-block read of every input raster."""
+    """Band layout, data type and a full block-by-block read of every input raster.
+
+    The read is split into strips of about :data:`CHECK_TASK_PX` pixels run on the active
+    engine (:func:`geosim.engine.parallel_map`; in this process when all the rasters
+    together are smaller than one strip); the first unreadable block in file order is
+    reported, as by a read from start to end.
+    """
+    from geosim.engine import parallel_map
     from geosim.io.raster import open_raster
 
     items = [(f"flight {f.id}", f.image) for f in site.flights]
     if site.satellite is not None:
         items.append(("satellite scene", site.satellite.image))
+    tasks, total_px = [], 0
     for what, path in items:
         with open_raster(path, what=what) as ds:
             check_raster_bands(ds, what)
-            check_raster_readable(ds, what)
+            total_px += ds.width * ds.height
+            step_r = _check_step_rows(ds)
+            strip = max(1, CHECK_TASK_PX // max(1, step_r * ds.width)) * step_r
+            tasks += [ReadCheckTask(str(path), what, (r, min(r + strip, ds.height)))
+                      for r in range(0, ds.height, strip)]
+    # a read smaller than one task is not worth starting a cluster for
+    small = total_px <= CHECK_TASK_PX
+    errors = map(read_check_task, tasks) if small else parallel_map(
+        read_check_task, tasks, desc="check inputs")
+    for error in errors:
+        if error is not None:
+            raise RasterError(error)
 
 
 def preflight(site: SiteConfig, out: str | os.PathLike[str],

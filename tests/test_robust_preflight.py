@@ -58,6 +58,52 @@ def test_corrupt_block_is_located(tmp_path: Path) -> None:
     assert "tiled.tif" in msg and "block (1, 2)" in msg and "row 256, column 512" in msg
 
 
+def _raster_with_bad_blocks(path: Path, bad: list[tuple[int, int]]) -> None:
+    """A 1024 × 2048 px tiled GeoTIFF (256 px blocks) with garbage over blocks ``(row, col)``."""
+    rng = np.random.default_rng(2)
+    profile = {"driver": "GTiff", "width": 1024, "height": 2048, "count": 3, "dtype": "uint8",
+               "crs": "EPSG:32756", "transform": Affine(0.05, 0, 255000, 0, -0.05, 6185000),
+               "tiled": True, "blockxsize": 256, "blockysize": 256, "compress": "deflate"}
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(rng.integers(0, 255, (3, 2048, 1024), dtype=np.uint8))
+    for row, col in bad:
+        with rasterio.open(path) as ds:
+            offset = int(ds.get_tag_item(f"BLOCK_OFFSET_{col}_{row}", "TIFF", bidx=1))
+            size = int(ds.get_tag_item(f"BLOCK_SIZE_{col}_{row}", "TIFF", bidx=1))
+        with open(path, "r+b") as f:
+            f.seek(offset)
+            f.write(bytes(rng.integers(0, 255, size, dtype=np.uint8)))
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_read_check_in_parts_reports_the_first_bad_block_in_file_order(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, workers: int) -> None:
+    """The integrity read split into strips (engine tasks; 2 workers: on a local cluster)
+    reports the block a read from start to end meets first, whichever strip ends first."""
+    from types import SimpleNamespace
+
+    from geosim import validate
+    from geosim.engine import open_engine
+
+    path = tmp_path / "two_bad.tif"
+    _raster_with_bad_blocks(path, [(1, 2), (6, 0)])  # in the first and the second strip
+    monkeypatch.setattr(validate, "CHECK_TASK_PX", 1024 * 1024)  # 2 strips of 1024 rows
+    site = SimpleNamespace(flights=[SimpleNamespace(id="X", image=path)], satellite=None)
+    with open_engine(workers), pytest.raises(RasterError) as err:
+        validate.check_rasters(site)
+    msg = str(err.value)
+    assert "two_bad.tif" in msg and "block (1, 2)" in msg and "row 256, column 512" in msg
+
+
+def test_read_check_strips_cover_every_pixel_once(tmp_path: Path) -> None:
+    path = tmp_path / "sound.tif"
+    _raster_with_bad_blocks(path, [])
+    with rasterio.open(path) as ds:
+        parts = [check_raster_readable(ds, "x", (r, min(r + 1024, 2048))) for r in (0, 1024)]
+        assert parts == [1024 * 1024, 1024 * 1024]
+        assert sum(parts) == check_raster_readable(ds, "x") == ds.width * ds.height
+
+
 def test_sound_raster_reads_every_pixel(samples_dir: Path) -> None:
     with rasterio.open(samples_dir / "flights" / "PA1.tif") as ds:
         assert check_raster_readable(ds, "flight PA1") == ds.width * ds.height

@@ -449,6 +449,31 @@ def register_pair(ref_grey: np.ndarray, ref_valid: np.ndarray, mov_grey: np.ndar
     }
 
 
+@dataclass(frozen=True)
+class RegistrationTask:
+    """One flight registered to the reference over the registration window (an engine task).
+
+    ``ref`` and ``mov`` are grey sources on the same grid (raster paths or picklable readers
+    ``window -> (grey, valid)``, e.g. :class:`geosim.prepare.onewarp.WarpedGreyReader`);
+    each task reads both windows itself, so flights register in parallel and the driver
+    only gathers the small records.
+    """
+
+    ref: Any                                   # GreySource
+    mov: Any                                   # GreySource
+    window: Window
+    min_confidence: float
+    what: str
+
+
+def registration_task(task: RegistrationTask) -> dict[str, Any]:
+    """Run a :class:`RegistrationTask`: :func:`register_pair` on the two windows read."""
+    ref_grey, ref_valid = _grey_source(task.ref)(task.window)
+    mov_grey, mov_valid = _grey_source(task.mov)(task.window)
+    return register_pair(ref_grey, ref_valid, mov_grey, mov_valid,
+                         min_confidence=task.min_confidence, what=task.what)
+
+
 def local_field_stats(shifts_px: np.ndarray, confident: np.ndarray, gsd_m: float
                       ) -> dict[str, Any]:
     """Summary of a local shift field: magnitudes in UAV px and metres over confident windows."""

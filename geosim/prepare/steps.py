@@ -36,7 +36,6 @@ from geosim.prepare.onewarp import (
     ComposedWarp,
     WarpedGreyReader,
     WarpRasterTask,
-    read_grey_on_grid,
     warp_raster_task,
 )
 from geosim.prepare.pairs import pair_rows, pairs_csv_text
@@ -488,20 +487,15 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
     # flights reach the site grid on the fly, through the same composed warp as the tiles
     warps = {f.id: ComposedWarp.for_flight(f.image, grid.crs, grid.uav_transform)
              for f in site.flights}
-    ref_grey, ref_valid = read_grey_on_grid(warps[ref_id], rwin)
     win_dict = {"col_off": int(rwin.col_off), "row_off": int(rwin.row_off),
                 "width": int(rwin.width), "height": int(rwin.height)}
+    regs = _register_flights(site, warps, rwin, win_dict)
     entries: dict[str, dict[str, Any]] = {}
     for f in site.flights:
         if f.id == ref_id:
             entry = al.identity_entry(rwin, grid.uav_transform)
         else:
-            mov_grey, mov_valid = read_grey_on_grid(warps[f.id], rwin)
-            reg = al.register_pair(
-                ref_grey, ref_valid, mov_grey, mov_valid, min_confidence=p.min_align_confidence,
-                what=(f"flight {f.id} against reference flight {ref_id} (window {win_dict}; "
-                      "check the flight, choose another reference_flight or a larger "
-                      "align_window_px)"))
+            reg = regs[f.id]
             entry = al.correction_from_matrix(np.array(reg["matrix_px"]), rwin,
                                               grid.uav_transform)
             entry.update(confidence=reg["confidence"], matrix_px=reg["matrix_px"],
@@ -592,6 +586,26 @@ def run_align(site: SiteConfig, out: RunPath) -> StepResult:
                 + skip_text(n_skipped, len(entries)).replace("current", "aligned")),
         warnings=_fallback_warnings(entries), outputs=[run.rel(o) for o in outputs],
         record=record)
+
+
+def _register_flights(site: SiteConfig, warps: dict[str, ComposedWarp], rwin: Window,
+                      win_dict: dict[str, int]) -> dict[str, dict[str, Any]]:
+    """Register every other flight to the reference over ``rwin`` (site grid): one engine
+    task per flight, each reading both windows through their warps (nothing written)."""
+    ref_id = site.reference_flight
+
+    def on_grid(fid: str) -> WarpedGreyReader:
+        warp = warps[fid].with_correction(Affine.identity())
+        return WarpedGreyReader(warp, warp.grid_transform)
+
+    others = [f.id for f in site.flights if f.id != ref_id]
+    tasks = [al.RegistrationTask(
+        on_grid(ref_id), on_grid(fid), rwin, site.parameters.min_align_confidence,
+        (f"flight {fid} against reference flight {ref_id} (window {win_dict}; check the "
+         "flight, choose another reference_flight or a larger align_window_px)"))
+        for fid in others]
+    return dict(zip(others, parallel_map(al.registration_task, tasks, desc="register"),
+                    strict=True))
 
 
 def _fallback_warnings(entries: dict[str, dict[str, Any]]) -> list[str]:
