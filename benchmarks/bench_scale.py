@@ -205,6 +205,7 @@ def child_step(step: str, site_file: str, out: str, workers: int | None) -> dict
 
     site = load_site(site_file)
     rec: dict = {}
+    _warm_worker()  # the step's modules imported before the clock here too, as on the workers
     with _engine(workers) as eng:
         client = getattr(eng, "client", None) if workers and workers > 1 else None
         if client is not None:

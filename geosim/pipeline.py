@@ -103,20 +103,31 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM arrived during a run (raised so that run.json records the interruption)."""
 
 
-def input_checksums(site: SiteConfig) -> dict[str, dict[str, str]]:
-    """SHA-256 of every input file (for a folder of labels: of each file in it)."""
+def input_checksums(site: SiteConfig, known: Mapping[str, Any] | None = None
+                    ) -> dict[str, dict[str, Any]]:
+    """SHA-256 of every input file (for a folder of labels: of each file in it); ``known``:
+    an earlier record's entries, reused for files whose path, size and mtime are the same
+    (:func:`file_checksums`)."""
     paths: dict[str, Path | None] = {"site": site.path}
     for f in site.flights:
         paths[f"flights.{f.id}.image"] = f.image
         paths[f"flights.{f.id}.labels"] = f.labels
     paths["satellite.image"] = site.satellite.image if site.satellite is not None else None
     paths["paddocks"] = site.paddocks
-    return file_checksums(paths)
+    return file_checksums(paths, known)
 
 
-def file_checksums(paths: Mapping[str, Path | None]) -> dict[str, dict[str, str]]:
-    """``{key: {"path", "sha256"}}`` of each given input file; a folder gives one entry per
-    file directly in it (``key.<name>``); ``None`` and missing paths are left out."""
+def file_checksums(paths: Mapping[str, Path | None], known: Mapping[str, Any] | None = None
+                   ) -> dict[str, dict[str, Any]]:
+    """``{key: {"path", "sha256", "size", "mtime_ns"}}`` of each given input file; a folder
+    gives one entry per file directly in it (``key.<name>``); ``None`` and missing paths are
+    left out.
+
+    ``known`` (the ``inputs`` of an earlier run.json) saves hashing again a file whose
+    entry there has the same path, size and modification time (ns), the rule the manifest
+    uses to call an input unchanged (:mod:`geosim.manifest`): a 20000² px flight takes
+    about a second to hash, on every command that names it.
+    """
     files: dict[str, Path] = {}
     for key, p in paths.items():
         if p is None:
@@ -125,7 +136,17 @@ def file_checksums(paths: Mapping[str, Path | None]) -> dict[str, dict[str, str]
             files.update({f"{key}.{f.name}": f for f in sorted(p.iterdir()) if f.is_file()})
         elif p.is_file():
             files[key] = p
-    return {k: {"path": str(p), "sha256": sha256_file(p)} for k, p in files.items()}
+    out: dict[str, dict[str, Any]] = {}
+    for k, p in files.items():
+        st = p.stat()
+        entry = {"path": str(p), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+        old = (known or {}).get(k)
+        if (isinstance(old, dict) and isinstance(old.get("sha256"), str)
+                and all(old.get(f) == v for f, v in entry.items())):
+            out[k] = {**entry, "sha256": old["sha256"]}
+        else:
+            out[k] = {**entry, "sha256": sha256_file(p)}
+    return out
 
 
 def select_steps(only: Sequence[str] | None = None) -> list[Step]:
@@ -180,7 +201,7 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path | RunDir, *,
         "python": platform.python_version(),
         "status": "running",
         "site": site_doc,
-        "inputs": input_checksums(site),
+        "inputs": input_checksums(site, previous.get("inputs")),
         "steps": _earlier_steps(previous) if only else {},
         "gdal_cache_mb": GDAL_CACHE_MB,
     }

@@ -55,6 +55,38 @@ def test_run_json_records_inputs_steps_and_failure(tmp_path: Path, fake_steps: l
     assert record["site"]["parameters"]["phi"] == 10
 
 
+def test_input_checksums_reused_only_for_the_same_file(
+        tmp_path: Path, fake_steps: list[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rerun reuses run.json's checksum of an input with the same path, size and mtime,
+    and hashes again one whose bytes changed (same size, new mtime)."""
+    import os
+
+    from geosim import pipeline
+
+    img = write_raster(tmp_path / "a.tif", textured_rgb(32, 32))
+    site = site_from_images([img], None)
+    out = tmp_path / "out"
+    hashed: list[str] = []
+    real = pipeline.sha256_file
+    monkeypatch.setattr(pipeline, "sha256_file", lambda p: hashed.append(Path(p).name) or real(p))
+
+    def inputs() -> dict:
+        with pytest.raises(RuntimeError, match="exploded"):
+            run_pipeline(site, out, echo=lambda s: None)
+        return json.loads((out / "run.json").read_text())["inputs"]["flights.a.image"]
+
+    first = inputs()
+    assert hashed == ["a.tif"] and first["sha256"] == hashlib.sha256(img.read_bytes()).hexdigest()
+    assert inputs() == first and hashed == ["a.tif"]  # reused: not hashed again
+    data = bytearray(img.read_bytes())
+    data[-1] ^= 0xFF  # same size, other bytes (the last byte of the pixel data)
+    img.write_bytes(bytes(data))
+    os.utime(img, ns=(first["mtime_ns"] + 10**9, first["mtime_ns"] + 10**9))
+    third = inputs()
+    assert hashed == ["a.tif", "a.tif"]
+    assert third["sha256"] == hashlib.sha256(bytes(data)).hexdigest() != first["sha256"]
+
+
 def test_only_selects_steps_in_order(fake_steps: list[str]) -> None:
     assert [s.name for s in select_steps(["two", "one"])] == ["one", "two"]
     with pytest.raises(ConfigError, match="unknown step"):
