@@ -12,6 +12,7 @@ import json
 import math
 import tempfile
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -140,6 +141,22 @@ def run_grid(site: SiteConfig, out: RunPath) -> StepResult:
 # --------------------------------------------------------------------------- footprints
 
 
+@dataclass(frozen=True)
+class FootprintTask:
+    """One flight's valid-data footprint, traced on its own grid (an engine task)."""
+
+    path: str
+    site_crs: Any
+    cell_m: float
+    simplify_m: float
+
+
+def footprint_task(task: FootprintTask) -> Any:
+    """Run a :class:`FootprintTask` (:func:`source_footprint`): the polygon, site CRS."""
+    return source_footprint(task.path, task.site_crs, cell_m=task.cell_m,
+                            simplify_m=task.simplify_m)
+
+
 def run_footprints(site: SiteConfig, out: RunPath) -> StepResult:
     """Trace valid-data footprints on the grid and intersect them.
 
@@ -158,9 +175,12 @@ def run_footprints(site: SiteConfig, out: RunPath) -> StepResult:
     p = site.parameters
     fps: dict[str, Any] = {}
     rows = []
-    for f in site.flights:  # traced on the original flight: no copy on the site grid needed
-        fps[f.id] = source_footprint(f.image, grid.crs, cell_m=grid.sat_gsd_m,
-                                     simplify_m=p.footprint_simplify_m)
+    # traced on the original flight (no copy on the site grid needed), one task per flight
+    traced = parallel_map(footprint_task, [
+        FootprintTask(str(f.image), grid.crs, grid.sat_gsd_m, p.footprint_simplify_m)
+        for f in site.flights], desc="footprints")
+    for f, geom in zip(site.flights, traced, strict=True):
+        fps[f.id] = geom
         rows.append({"id": f.id, "kind": "flight", "acquired": f.acquired.isoformat(),
                      "source": str(f.image), "area_m2": fps[f.id].area,
                      "bbox_area_m2": fps[f.id].envelope.area, "geometry": fps[f.id]})
