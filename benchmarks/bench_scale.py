@@ -28,6 +28,11 @@ Usage::
     python benchmarks/bench_scale.py --size 20000          # the full size (long)
     python benchmarks/bench_scale.py --size 6000 --tile-px 2000   # a smaller run
     python benchmarks/bench_scale.py --workers 1                  # one process only
+    python benchmarks/bench_scale.py --workers 1t,1,2             # also one thread in-process
+
+``1t`` runs in this process on one thread (``GEOSIM_THREADS=1``), like one single-threaded
+worker without Dask: the baseline of pure multi-process scaling (``1`` uses every core for
+FFTs, OpenCV and GDAL, so it is partly parallel already).
 
 Writes benchmarks/results/bench_scale.json (or --out) and prints a markdown table.
 """
@@ -217,7 +222,8 @@ def child_step(step: str, site_file: str, out: str, workers: int | None) -> dict
         load0 = os.getloadavg()[0]
         driver0, workers0 = _own_cpu_seconds(), _workers_cpu_seconds(client)
         profile = os.environ.get("GEOSIM_BENCH_PROFILE")
-        with _task_stream(client) as stream, _profiled(profile, f"{step}_w{workers}"):
+        name = f"{step}_w{workers}" + ("t" if os.environ.get("GEOSIM_THREADS") == "1" else "")
+        with _task_stream(client) as stream, _profiled(profile, name):
             t0 = time.perf_counter()
             doc = run_pipeline(site, out, only=[step], echo=lambda s: None)
             seconds = time.perf_counter() - t0
@@ -341,16 +347,18 @@ def run_gdalwarp(flights: list[Path], out_dir: Path, grid: dict) -> dict:
                        "-wo NUM_THREADS=ALL_CPUS -co TILED=YES -co COMPRESS=DEFLATE"}
 
 
-def run_steps(site_file: Path, out: Path, workers: int, size: int, tile_px: int
+def run_steps(site_file: Path, out: Path, workers: str, size: int, tile_px: int
               ) -> list[dict]:
-    """Every step, each in its own child process, on ``workers``; one record per step."""
+    """Every step, each in its own child process, on ``workers`` (a count, or ``1t``: in
+    this process on one thread); one record per step."""
     flight_mp = 3 * size * size / 1e6
     rows = []
+    env = {**os.environ, **({"GEOSIM_THREADS": "1"} if workers.endswith("t") else {})}
     for step in STEPS:
         before = _dir_bytes(out) if out.is_dir() else {}
         cmd = [sys.executable, __file__, "--child", step, "--site", str(site_file),
-               "--run", str(out), "--workers", str(workers)]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+               "--run", str(out), "--workers", workers.rstrip("t")]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
         if proc.returncode != 0:
             raise RuntimeError(f"step {step} failed:\n{proc.stderr[-3000:]}")
         rec = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -382,7 +390,7 @@ def _same_outputs(a: Path, b: Path) -> bool:
     return bool(files)
 
 
-def run(size: int, tile_px: int, workers: list[int], keep: bool,
+def run(size: int, tile_px: int, workers: list[str], keep: bool,
         site_cache: Path | None = None, gdalwarp: bool = True) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="geosim-scale-"))
     try:
@@ -403,8 +411,8 @@ def run(size: int, tile_px: int, workers: list[int], keep: bool,
               else {"skipped": "--no-gdalwarp"})
         print(f"gdalwarp: {gw}", flush=True)
         n_tiles = len(list((out / "tiles").glob("*/*.tif")))
-        same = (_same_outputs(out, tmp / f"run_w{workers[-1]}") if len(workers) > 1
-                else None)
+        same = (all(_same_outputs(out, tmp / f"run_w{w}") for w in workers[1:])
+                if len(workers) > 1 else None)
         doc = summarise(rows, gw, size, tile_px, n_tiles, imagery, make_s, workers, same)
         doc["site_reused_from_cache"] = reused
     finally:
@@ -416,7 +424,7 @@ def run(size: int, tile_px: int, workers: list[int], keep: bool,
 
 
 def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
-              imagery: str, make_s: float, workers: list[int], same: bool | None) -> dict:
+              imagery: str, make_s: float, workers: list[str], same: bool | None) -> dict:
     by = {(r["workers"], r["step"]): r for r in rows}
     doc: dict = {
         "benchmark": "bench_scale", "flights": 3, "flight_px": size, "tile_px": tile_px,
@@ -442,6 +450,9 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
         doc["speedup"] = {s: round(by[(w1, s)]["seconds"] / by[(wn, s)]["seconds"], 2)
                           for s in STEPS}
         doc["speedup_of"] = f"{wn} workers vs {w1}"
+        if "1t" in workers and wn != "1t":  # pure multi-process scaling
+            doc["speedup_vs_one_thread"] = {
+                s: round(by[("1t", s)]["seconds"] / by[(wn, s)]["seconds"], 2) for s in STEPS}
         # the step function alone, without the runner's per-command preflight and checksums
         doc["speedup_step_alone"] = {
             s: round(by[(w1, s)]["step_s"] / by[(wn, s)]["step_s"], 2) for s in STEPS
@@ -486,6 +497,9 @@ def markdown(doc: dict) -> str:
                      + ", ".join(f"{k} {v}×" for k, v in doc["speedup"].items())
                      + "; the step alone: "
                      + ", ".join(f"{k} {v}×" for k, v in doc["speedup_step_alone"].items())
+                     + ("" if "speedup_vs_one_thread" not in doc else
+                        f"; {doc['workers'][-1]} workers vs 1 thread in-process: "
+                        + ", ".join(f"{k} {v}×" for k, v in doc["speedup_vs_one_thread"].items()))
                      + f"; tiles and degraded tiles identical: "
                      f"{doc['outputs_identical_across_workers']}.")
     if "seconds" in gw:
@@ -524,7 +538,9 @@ def main() -> None:
     if args.child:
         print(json.dumps(child_step(args.child, args.site, args.run, int(args.workers))))
         return
-    workers = [int(w) for w in str(args.workers).split(",")]
+    workers = [w.strip() for w in str(args.workers).split(",")]
+    if not all(w.rstrip("t").isdigit() and (not w.endswith("t") or w == "1t") for w in workers):
+        ap.error("--workers: give counts such as 1,2 (and 1t for one thread in-process)")
     doc = run(args.size, args.tile_px, workers, args.keep, args.site_cache,
               not args.no_gdalwarp)
     args.out.parent.mkdir(parents=True, exist_ok=True)

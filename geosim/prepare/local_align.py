@@ -18,15 +18,16 @@ The pure estimation is :mod:`geosim.align.field`; this module adapts it to raste
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import rasterio
 from affine import Affine
 from rasterio.windows import Window
-from tqdm import tqdm
 
 from geosim.align.field import (
     UNMEASURED,
@@ -54,9 +55,89 @@ GreySource = str | os.PathLike[str] | Callable[[Window], tuple[np.ndarray, np.nd
 
 
 def _grey_reader(source: GreySource) -> Callable[[Window], tuple[np.ndarray, np.ndarray]]:
-    if callable(source):
-        return source
-    return lambda win: read_grey_window(source, win)
+    # a partial, not a lambda: readers travel to worker processes inside the tasks
+    return source if callable(source) else functools.partial(read_grey_window, source)
+
+
+#: Rows of windows measured by one engine task (a strip of about 1 000 px at the defaults).
+ROWS_PER_TASK = 8
+
+
+@dataclass(frozen=True)
+class ShiftRowsTask:
+    """Rows of windows of one flight against the reference (an engine task)."""
+
+    ref: Any                                   # GreySource
+    mov: Any                                   # GreySource
+    row_starts: tuple[int, ...]                # first pixel row of each row of windows
+    chunks: tuple[tuple[int, ...], ...]        # first pixel column of each window, by chunk
+    window_px: int
+    step_px: int
+
+
+def shift_rows_task(task: ShiftRowsTask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run a :class:`ShiftRowsTask`: ``(dx_px, dy_px, confidence)``, each (rows, windows),
+    NaN / 0 where a chunk has no valid pixel in both."""
+    read_ref, read_mov = _grey_reader(task.ref), _grey_reader(task.mov)
+    n = sum(len(c) for c in task.chunks)
+    dx = np.full((len(task.row_starts), n), np.nan)
+    dy = np.full((len(task.row_starts), n), np.nan)
+    conf = np.zeros((len(task.row_starts), n))
+    for i, row in enumerate(task.row_starts):
+        j0 = 0
+        for starts in task.chunks:
+            c0 = int(starts[0])
+            win = Window(c0, int(row), int(starts[-1]) - c0 + task.window_px, task.window_px)
+            rg, rv = read_ref(win)
+            mg, mv = read_mov(win)
+            if (rv & mv).any():
+                s = measure_window_shifts(rg, mg, valid=rv & mv, window_px=task.window_px,
+                                          step_px=task.step_px)
+                k = s.dx_px.shape[1]
+                dx[i, j0:j0 + k] = s.dx_px[0]
+                dy[i, j0:j0 + k] = s.dy_px[0]
+                conf[i, j0:j0 + k] = s.confidence[0]
+            j0 += len(starts)
+    return dx, dy, conf
+
+
+def measure_local_shifts_many(ref: GreySource, movs: Mapping[str, GreySource], *,
+                              shape: tuple[int, int] | None = None,
+                              window_px: int = LOCAL_FIELD_WINDOW_PX,
+                              step_px: int = LOCAL_FIELD_STEP_PX, windows_per_chunk: int = 16
+                              ) -> dict[str, WindowShifts]:
+    """:func:`measure_local_shifts` of several flights against one reference.
+
+    Every flight's rows of windows are engine tasks (:data:`ROWS_PER_TASK` rows each,
+    :func:`geosim.engine.parallel_map`), all flights in one round, so that the workers
+    share them; the sources must be picklable for a multi-process engine (paths and
+    :class:`geosim.prepare.onewarp.WarpedGreyReader` are).
+    """
+    from geosim.engine import parallel_map
+
+    height, width = grid_shape(ref, shape, caller="measure_local_shifts")
+    sr = window_starts(height, window_px, step_px)
+    sc = window_starts(width, window_px, step_px)
+    chunks = tuple(tuple(int(c) for c in sc[k:k + windows_per_chunk])
+                   for k in range(0, len(sc), windows_per_chunk))
+    groups = [tuple(int(r) for r in sr[i:i + ROWS_PER_TASK])
+              for i in range(0, len(sr), ROWS_PER_TASK)]
+    jobs = [(fid, g) for fid in movs for g in groups]
+    done = parallel_map(shift_rows_task, [
+        ShiftRowsTask(ref, movs[fid], g, chunks, int(window_px), int(step_px))
+        for fid, g in jobs], desc="local field")
+    half = (window_px - 1) / 2.0
+    yy, xx = np.meshgrid(sr + half, sc + half, indexing="ij")
+    out = {}
+    for fid in movs:
+        parts = [d for (f, _), d in zip(jobs, done, strict=True) if f == fid]
+        dx = np.concatenate([d[0] for d in parts]).reshape(len(sr), len(sc))
+        dy = np.concatenate([d[1] for d in parts]).reshape(len(sr), len(sc))
+        conf = np.concatenate([d[2] for d in parts]).reshape(len(sr), len(sc))
+        status = np.where(np.isfinite(dx), 0, UNMEASURED).astype(np.int8)
+        out[fid] = WindowShifts(xx.astype(float), yy.astype(float), dx, dy, conf, status,
+                                int(window_px), int(step_px))
+    return out
 
 
 def measure_local_shifts(ref: GreySource, mov: GreySource, *, shape: tuple[int, int] | None = None,
@@ -66,7 +147,8 @@ def measure_local_shifts(ref: GreySource, mov: GreySource, *, shape: tuple[int, 
     """Window shifts between two rasters on the same grid, over their whole extent.
 
     Rows of windows are read as strips of ``window_px`` rows, in column chunks of
-    ``windows_per_chunk`` windows, so memory does not grow with the raster.
+    ``windows_per_chunk`` windows, so memory does not grow with the raster; groups of rows
+    are engine tasks (:func:`measure_local_shifts_many`).
 
     Parameters
     ----------
@@ -76,6 +158,8 @@ def measure_local_shifts(ref: GreySource, mov: GreySource, *, shape: tuple[int, 
         on the fly through its composed warp, nothing written).
     shape
         ``(rows, cols)`` of the grid (default: read from ``ref``, which must then be a path).
+    progress, what
+        Kept for callers; the engine shows the progress of the tasks.
 
     Returns
     -------
@@ -83,36 +167,8 @@ def measure_local_shifts(ref: GreySource, mov: GreySource, *, shape: tuple[int, 
         Centres in the rasters' pixel-centre coordinates; every window ``accepted`` or
         ``unmeasured`` (apply :func:`geosim.align.field.reject_outliers` next).
     """
-    height, width = grid_shape(ref, shape, caller="measure_local_shifts")
-    read_ref, read_mov = _grey_reader(ref), _grey_reader(mov)
-    sr = window_starts(height, window_px, step_px)
-    sc = window_starts(width, window_px, step_px)
-    shape = (len(sr), len(sc))
-    dx = np.full(shape, np.nan)
-    dy = np.full(shape, np.nan)
-    conf = np.zeros(shape)
-    chunks = [sc[k:k + windows_per_chunk] for k in range(0, len(sc), windows_per_chunk)]
-    jobs = [(i, k) for i in range(len(sr)) for k in range(len(chunks))]
-    for i, k in tqdm(jobs, desc=f"local field {what}", unit="strip", leave=False,
-                     disable=None if progress is None else not progress):
-        starts = chunks[k]
-        c0 = int(starts[0])
-        win = Window(c0, int(sr[i]), int(starts[-1]) - c0 + window_px, window_px)
-        rg, rv = read_ref(win)
-        mg, mv = read_mov(win)
-        if not (rv & mv).any():
-            continue
-        s = measure_window_shifts(rg, mg, valid=rv & mv, window_px=window_px, step_px=step_px)
-        j0 = k * windows_per_chunk
-        n = s.dx_px.shape[1]
-        dx[i, j0:j0 + n] = s.dx_px[0]
-        dy[i, j0:j0 + n] = s.dy_px[0]
-        conf[i, j0:j0 + n] = s.confidence[0]
-    half = (window_px - 1) / 2.0
-    yy, xx = np.meshgrid(sr + half, sc + half, indexing="ij")
-    status = np.where(np.isfinite(dx), 0, UNMEASURED).astype(np.int8)
-    return WindowShifts(xx.astype(float), yy.astype(float), dx, dy, conf, status,
-                        int(window_px), int(step_px))
+    return measure_local_shifts_many(ref, {what: mov}, shape=shape, window_px=window_px,
+                                     step_px=step_px, windows_per_chunk=windows_per_chunk)[what]
 
 
 # --------------------------------------------------------------------------- applying

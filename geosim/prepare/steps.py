@@ -385,15 +385,17 @@ def _local_fields(site: SiteConfig, run: RunDir, grid: SiteGrid, awin: Window,
     shape = (int(awin.height), int(awin.width))
     records: dict[str, dict[str, Any]] = {}
     local_tasks = []
+    ref_task = tasks[ref_id]
+    measured = la.measure_local_shifts_many(  # every flight's strips: engine tasks
+        WarpedGreyReader(ref_task.warp, ref_task.dst_transform),
+        {f.id: WarpedGreyReader(tasks[f.id].warp, tasks[f.id].dst_transform)
+         for f in site.flights if f.id != ref_id}, shape=shape)
     for f in site.flights:
         if f.id == ref_id:
             continue
         task = tasks[f.id]
-        ref_task = tasks[ref_id]
-        shifts = la.measure_local_shifts(WarpedGreyReader(ref_task.warp, ref_task.dst_transform),
-                                         WarpedGreyReader(task.warp, task.dst_transform),
-                                         shape=shape, what=f.id)
-        shifts = reject_outliers(shifts, min_confidence=site.parameters.min_align_confidence)
+        shifts = reject_outliers(measured[f.id],
+                                 min_confidence=site.parameters.min_align_confidence)
         field = fit_field(shifts, aligned_transform, shape)
         rel = run.rel(run.alignment_field(f.id))
         tags = provenance_tags("align", params, [ref.image, f.image], base_dir=run.root)
