@@ -13,10 +13,14 @@ runs in its own child process, once per worker count of ``--workers`` (default 1
 in-process, then a local Dask cluster of 2 single-threaded worker processes, started
 before the clock), each into its own run folder; per step it reports wall time,
 throughput (MP/s: megapixels of the flights — or of the tiles for ``degrade`` — per
-second), CPU seconds (driver + workers), the 1-minute load average before and after,
-the peak resident memory (VmHWM) of the driver and of every worker process, and the
-bytes written; then the speed-up per step and whether the tiles and degraded tiles of
-the runs are identical. In the same
+second), CPU seconds (driver and workers apart), the step function's own time without the
+runner's per-command work (``step_s``), on a cluster the workers' busy fraction (sum of the
+task durations from Dask's task stream ÷ (workers × wall time)), the 1-minute load average
+before and after, the peak resident memory (VmHWM) of the driver and of every worker
+process, and the bytes written; then the speed-up per step and whether the tiles and
+degraded tiles of the runs are identical. ``GEOSIM_BENCH_PROFILE=DIR`` writes a cProfile
+of the driver per step and worker count. ``--site-cache DIR`` keeps the generated flights
+for later runs of the same ``--size``. In the same
 run, GDAL's own ``gdalwarp`` (Debian gdal-bin; skipped with a note when absent) does
 the same reprojection of the same flights onto the site grid (bicubic, 256 MB warp
 memory, all CPUs), and the resample-once prepare path (grid + align + tiles) is
@@ -523,7 +527,8 @@ def main() -> None:
     ap.add_argument("--tile-px", type=int, default=5000, help="tile side, px (default 5000)")
     ap.add_argument("--workers", default="1,2",
                     help="worker counts to compare, comma-separated (default 1,2); 1 runs "
-                         "in-process, N > 1 on a local Dask cluster of N processes")
+                         "in-process, N > 1 on a local Dask cluster of N processes, 1t "
+                         "in-process on one thread (GEOSIM_THREADS=1)")
     ap.add_argument("--out", type=Path, default=RESULT)
     ap.add_argument("--keep", action="store_true", help="keep the temporary site and run")
     ap.add_argument("--site-cache", type=Path,

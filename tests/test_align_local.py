@@ -511,9 +511,10 @@ def _serial_strips(ref: Path, mov: Path, shape: tuple[int, int], window_px: int,
                    step_px: int) -> tuple[np.ndarray, np.ndarray]:
     """The window shifts strip by strip in one loop, straight from the kernel (the
     measurement before it was split into engine tasks)."""
+    from rasterio.windows import Window
+
     from geosim.align.local import window_starts
     from geosim.prepare.alignment import read_grey_window
-    from rasterio.windows import Window
 
     sr = window_starts(shape[0], window_px, step_px)
     sc = window_starts(shape[1], window_px, step_px)
