@@ -450,7 +450,8 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
     if "seconds" in gw:
         doc["prepare_vs_gdalwarp"] = {w: round(v / gw["seconds"], 2) for w, v in prepare.items()}
     if len(workers) > 1:
-        w1, wn = workers[0], workers[-1]
+        # against the default in-process run ("1") when there is one; "1t" apart below
+        w1, wn = ("1" if "1" in workers[:-1] else workers[0]), workers[-1]
         doc["speedup"] = {s: round(by[(w1, s)]["seconds"] / by[(wn, s)]["seconds"], 2)
                           for s in STEPS}
         doc["speedup_of"] = f"{wn} workers vs {w1}"
