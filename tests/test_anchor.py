@@ -466,3 +466,34 @@ def test_labels_land_in_the_satellite_frame(sample_runs):
         worst = max(worst, float(dist.max()))
     print(f"labels vs truth in the satellite frame: worst {worst * 100:.1f} cm")
     assert worst < 0.1
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_reference_averaged_through_its_warp_equals_the_warped_raster(
+        samples_dir: Path, tmp_path: Path, workers: int) -> None:
+    """The anchor's reference, area-averaged strip by strip through its warp as engine tasks
+    (in-process and on 2 workers), equals the warped raster written by warp_raster_task and
+    read back with read_averaged_window, bit for bit (the way it was read before)."""
+    from geosim.config import load_site
+    from geosim.engine import open_engine
+    from geosim.prepare import anchor as anc
+    from geosim.prepare.onewarp import ComposedWarp, WarpRasterTask, warp_raster_task
+
+    site = load_site(samples_dir / "site.toml")
+    flight = site.flight(site.reference_flight)
+    with rasterio.open(flight.image) as ds:
+        crs = ds.crs
+        x0, y0 = ds.transform * (37.3, 41.7)  # a grid not aligned with the flight's pixels
+    phi = 10
+    grid = Affine(0.05, 0, x0, 0, -0.05, y0)
+    window = Window(40, 60, 900, 1300)  # whole satellite pixels
+    warp = ComposedWarp.for_flight(flight.image, crs, grid)
+    written = tmp_path / "ref.tif"
+    warp_raster_task(WarpRasterTask(warp, str(written), tuple(grid @ Affine.translation(
+        40, 60))[:6], (1300, 900), 512, {}, "ref"))
+    want = anc.read_averaged_window(written, Window(0, 0, 900, 1300), phi, block_px=400)
+    with open_engine(workers):
+        grey, valid = anc.read_averaged_through_warp(warp, grid, window, phi, block_px=400)
+    assert grey.shape == (130, 90) and 0.2 < valid.mean() <= 1.0
+    np.testing.assert_array_equal(valid, want.valid)
+    np.testing.assert_array_equal(grey, want.array[0])

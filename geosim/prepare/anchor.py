@@ -464,6 +464,72 @@ def read_averaged_window(path: str | os.PathLike[str], window: Window, phi: int,
                       band_names=("grey",), path=Path(path))
 
 
+@dataclass(frozen=True)
+class AveragedWarpTask:
+    """One strip of :func:`read_averaged_through_warp` (an engine task)."""
+
+    warp: Any                                  # geosim.prepare.onewarp.ComposedWarp
+    grid_transform: tuple[float, ...]          # the site UAV grid
+    window: Window                             # the strip, UAV grid, whole satellite px
+    phi: int
+    step: int                                  # block side, UAV px (a multiple of phi)
+
+
+def averaged_warp_task(task: AveragedWarpTask) -> tuple[np.ndarray, np.ndarray]:
+    """Run an :class:`AveragedWarpTask`: the strip's ``(grey, valid)`` on the satellite grid,
+    block by block as :func:`read_averaged_window` reads a raster on the UAV grid."""
+    import rasterio
+
+    from geosim.align.phasecorr import as_grey
+    from geosim.io.raster import image_band_indexes
+    from geosim.prepare.onewarp import read_warped
+
+    win, phi, step = task.window, task.phi, task.step
+    grey = np.zeros((int(win.height) // phi, int(win.width) // phi), np.float32)
+    valid = np.zeros(grey.shape, bool)
+    g = Affine(*task.grid_transform[:6])
+    with rasterio.open(task.warp.src_path) as src:
+        bands = image_band_indexes(src)[:3]
+        for r0 in range(0, int(win.height), step):
+            for c0 in range(0, int(win.width), step):
+                h, w = min(step, int(win.height) - r0), min(step, int(win.width) - c0)
+                t = g @ Affine.translation(int(win.col_off) + c0, int(win.row_off) + r0)
+                img, ok = read_warped(task.warp, t, (h, w), src=src, bands=bands)
+                a, b = area_average(as_grey(img), ok, phi)
+                grey[r0 // phi:(r0 + h) // phi, c0 // phi:(c0 + w) // phi] = a
+                valid[r0 // phi:(r0 + h) // phi, c0 // phi:(c0 + w) // phi] = b
+    return grey, valid
+
+
+def read_averaged_through_warp(warp: Any, grid_transform: Affine, window: Window, phi: int,
+                               *, block_px: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`read_averaged_window` of a flight resampled on the fly onto the site UAV grid
+    through its composed warp (nothing written), one engine task per strip of blocks.
+
+    The same numbers as warping the window into a raster (``warp_raster_task``) and
+    reading that with :func:`read_averaged_window`: the warp of a block does not depend on
+    where the block is, and the blocks are the same.
+
+    Returns
+    -------
+    (grey, valid)
+        ``(height / phi, width / phi)`` float32 BT.601 luma means and their mask.
+    """
+    from geosim.engine import parallel_map
+
+    if any(int(v) % phi for v in (window.col_off, window.row_off, window.width,
+                                  window.height)):
+        raise ValueError(f"window {window} is not on whole satellite pixels (phi = {phi})")
+    step = max(phi, (block_px // phi) * phi)
+    strips = [Window(int(window.col_off), int(window.row_off) + r0, int(window.width),
+                     min(step, int(window.height) - r0))
+              for r0 in range(0, int(window.height), step)]
+    parts = parallel_map(averaged_warp_task, [
+        AveragedWarpTask(warp, tuple(grid_transform)[:6], s, phi, step) for s in strips],
+        desc="anchor reference")
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+
+
 def read_satellite_window(path: str | os.PathLike[str], window: Window) -> RasterData:
     """The RGB bands, valid mask and window transform of ``grid/satellite.tif`` (the window
     may reach outside the scene: those pixels are invalid)."""
@@ -473,6 +539,6 @@ def read_satellite_window(path: str | os.PathLike[str], window: Window) -> Raste
 
 __all__ = ["AnchorFit", "DARK_FRACTION", "HIGHPASS_SIGMA_PX", "METHOD", "anchor_affine",
            "area_average", "compose_entry", "highpass",
-           "prepare_for_satellite", "read_averaged_window",
+           "prepare_for_satellite", "read_averaged_through_warp", "read_averaged_window",
            "read_satellite_window",
            "register_to_satellite", "stable_mask"]

@@ -7,11 +7,8 @@ and returns a :class:`geosim.result.StepResult`.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import tempfile
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -264,26 +261,6 @@ def _identity_anchor(center_m: list[float]) -> dict[str, Any]:
             "method": ANCHOR_NONE_METHOD, "model": "identity"}
 
 
-@contextlib.contextmanager
-def _reference_on_grid(site: SiteConfig, run: RunDir, grid: SiteGrid, window: Window
-                       ) -> Iterator[tuple[Path, Window]]:
-    """The reference flight on the site grid over ``window``: ``grid/<ref>.tif`` when kept
-    (``keep_intermediates``), otherwise a temporary one-warp copy of that window only."""
-    ref_id = site.reference_flight
-    kept = run.grid_raster(ref_id)
-    if kept.is_file():
-        yield kept, window
-        return
-    ref = next(f for f in site.flights if f.id == ref_id)
-    with tempfile.TemporaryDirectory(dir=run.root, prefix=".anchor-") as tmp:
-        path = Path(tmp) / f"{ref_id}.tif"
-        warp_raster_task(WarpRasterTask(
-            ComposedWarp.for_flight(ref.image, grid.crs, grid.uav_transform), str(path),
-            tuple(grid.uav_window_transform(window))[:6],
-            (int(window.height), int(window.width)), BLOCK_PX, {}, f"flight {ref_id}"))
-        yield path, Window(0, 0, int(window.width), int(window.height))
-
-
 def anchor_to_satellite(site: SiteConfig, out: RunPath, grid: SiteGrid, window: Any,
                         center_m: list[float]) -> tuple[Affine, dict[str, Any]]:
     """Register the reference flight to the satellite scene on the 0.5 m grid.
@@ -313,10 +290,14 @@ def anchor_to_satellite(site: SiteConfig, out: RunPath, grid: SiteGrid, window: 
                            what="(site.anchor = 'satellite' registers the reference flight "
                                 "to it)")
     phi = grid.phi
-    with _reference_on_grid(site, run, grid, window) as (ref_path, ref_win):
-        ref = anc.read_averaged_window(ref_path, ref_win, phi,
-                                       block_px=(BLOCK_PX // phi) * phi)
-    ref_grey, ref_valid = ref.array[0], ref.valid
+    kept = run.grid_raster(ref_id)
+    if kept.is_file():  # keep_intermediates: the reference already on the site grid
+        ref = anc.read_averaged_window(kept, window, phi, block_px=(BLOCK_PX // phi) * phi)
+        ref_grey, ref_valid = ref.array[0], ref.valid
+    else:  # resampled on the fly, strip by strip on the engine (nothing written)
+        ref_grey, ref_valid = anc.read_averaged_through_warp(
+            ComposedWarp.for_flight(site.flight(ref_id).image, grid.crs, grid.uav_transform),
+            grid.uav_transform, window, phi, block_px=(BLOCK_PX // phi) * phi)
     sat_win = Window(int(window.col_off) // phi, int(window.row_off) // phi,
                      int(window.width) // phi, int(window.height) // phi)
     sat = anc.read_satellite_window(sat_path, sat_win)
