@@ -91,6 +91,17 @@ ALIASING_SPECTRAL_GAIN = 0.8
 #: the same for a native pitch fitted on the power spectrum: on each held-out half of the
 #: blocks (pitch chosen on the other half)
 ALIASING_SPECTRAL_GAIN_SPLIT = 0.9
+#: joint JPEG quality and blur: stop when the quality re-estimated on the refined model
+#: moves by less than this; at most this many re-selections
+JPEG_QUALITY_TOL = 2
+JPEG_MAX_ROUNDS = 3
+#: an isotropic blur claimed under JPEG must still be chosen when the quantisation steps
+#: are this much coarser than estimated (the block-edge moment estimate of the quality
+#: scatters by up to ≈ 25 % in step size on the development half, and a too-fine JPEG
+#: leaves high frequencies that an isotropic blur then removes in its place)
+JPEG_STEP_MARGIN = 1.25
+#: effects whose smooth isotropic roll-off the JPEG's high-frequency loss can imitate
+ISOTROPIC = ("detector_integration", "atmospheric_blur")
 
 
 @dataclass
@@ -265,7 +276,21 @@ def _find_compression(inp: Inputs, reg: Registration, model_img: np.ndarray | No
             and min(blk["row_z"], blk["col_z"]) > MIN_BLOCK_Z):
         return None
     offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
+    quality = _match_quality(inp, base_aff, offset)
+    if quality > MAX_CLAIMED_QUALITY:  # at the null end of its range: no compression shown
+        return None
+    return CompressionFit(int(quality), offset, blk)
 
+
+def _match_quality(inp: Inputs, model_aff: np.ndarray, offset: tuple[int, int],
+                   coarse_grid: tuple[int, ...] = (10, 20, 30, 40, 50, 60, 70, 80, 90, 95),
+                   fine_step: int = 2) -> int:
+    """The JPEG quality whose re-encoding of ``model_aff`` (an uncompressed model, matched
+    to the scene's radiometry) gives as much block-edge step energy as the real scene.
+
+    The step energy a quality leaves grows with the content's high-frequency power, so
+    the answer depends on the model's sharpness: a model sharper than the scene (the LV
+    baseline under JPEG) needs a higher quality to match (see :func:`_joint_jpeg_blur`)."""
     def excess(img_grey: np.ndarray) -> float:
         b = blockiness(img_grey, inp.valid)
         return max(b["row_excess_dn2"] + b["col_excess_dn2"], 1e-6)
@@ -273,15 +298,81 @@ def _find_compression(inp: Inputs, reg: Registration, model_img: np.ndarray | No
     target = excess(inp.grey)
 
     def mismatch(qual: int) -> float:
-        m = CompressionFit(qual, offset, blk).apply(base_aff)
+        m = CompressionFit(qual, offset, {}).apply(model_aff)
         return abs(np.log(excess(_grey(m)) / target))
 
-    coarse = min((10, 20, 30, 40, 50, 60, 70, 80, 90, 95), key=mismatch)
-    fine = list(range(max(5, coarse - 8), min(100, coarse + 9), 2))
-    quality = min(fine, key=mismatch)
-    if quality > MAX_CLAIMED_QUALITY:  # at the null end of its range: no compression shown
-        return None
-    return CompressionFit(int(quality), offset, blk)
+    coarse = min(coarse_grid, key=mismatch)
+    fine = list(range(max(5, coarse - 8), min(100, coarse + 9), fine_step))
+    return int(min(fine, key=mismatch))
+
+
+def _joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
+                     fit_mask: np.ndarray, q_lo: float, q_hi: float,
+                     candidates: tuple[str, ...], q_starts: tuple[float, float]
+                     ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """JPEG quality and blur, fitted to a common fixed point.
+
+    The quality is found by matching block-edge step energy, which depends on how sharp
+    the model is; the blur is found on the transfer against JPEG'd simulations, which
+    depends on the quality. A quality estimated on the too-sharp LV baseline comes out
+    too high (too little high-frequency loss in the JPEG'd simulations), and an isotropic
+    blur (``atmospheric_blur``) then stands in for the JPEG's loss. So: re-estimate the
+    quality on the refined (blurred) model, redo the blur selection with it, until the
+    quality moves by less than :data:`JPEG_QUALITY_TOL` (at most :data:`JPEG_MAX_ROUNDS`)."""
+    seen = {model.compression.quality} if model.compression is not None else set()
+    for _ in range(JPEG_MAX_ROUNDS):
+        c = model.compression
+        if c is None:
+            break
+        ref = _band_affine(model.without(compression=None, seam=None).blurred(inp.simulate),
+                           inp.real, inp.valid)
+        qual = _match_quality(inp, ref, c.offset_px, fine_step=1)
+        if abs(qual - c.quality) < JPEG_QUALITY_TOL or qual > MAX_CLAIMED_QUALITY \
+                or qual in seen:
+            break
+        seen.add(qual)
+        model = model.without(compression=CompressionFit(qual, c.offset_px, c.test),
+                              q=inp.q_base, blur={})
+        setup = _spectral_setup(inp, model, fit_mask, q_lo, q_hi)
+        sel = select_blur(setup.full, setup.folds, candidates=candidates, q_starts=q_starts)
+        model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
+    return model, setup, sel
+
+
+def jpeg_step_scale(quality: int) -> float:
+    """IJG quantisation-table scale (percent of the base tables) of a JPEG quality."""
+    q = min(max(int(quality), 1), 100)
+    return 5000.0 / q if q < 50 else 200.0 - 2.0 * q
+
+
+def jpeg_quality_for_scale(scale: float) -> int:
+    """Inverse of :func:`jpeg_step_scale` (nearest whole quality, 1–100)."""
+    q = 5000.0 / scale if scale > 100.0 else (200.0 - scale) / 2.0
+    return int(np.clip(round(q), 1, 100))
+
+
+def _jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
+                           sel: BlurSelection, fit_mask: np.ndarray, q_lo: float, q_hi: float,
+                           candidates: tuple[str, ...], q_starts: tuple[float, float]
+                           ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """Under JPEG, an isotropic blur must not be explainable by the quality's uncertainty.
+
+    The blur selection is repeated with quantisation steps :data:`JPEG_STEP_MARGIN` times
+    coarser than estimated; if no isotropic blur is chosen there, the JPEG's own
+    high-frequency loss explains the roll-off and that selection is kept."""
+    c = model.compression
+    if c is None or not any(n in model.blur for n in ISOTROPIC):
+        return model, setup, sel
+    q_low = jpeg_quality_for_scale(JPEG_STEP_MARGIN * jpeg_step_scale(c.quality))
+    alt = model.without(compression=CompressionFit(q_low, c.offset_px, c.test),
+                        q=inp.q_base, blur={})
+    alt_setup = _spectral_setup(inp, alt, fit_mask, q_lo, q_hi)
+    alt_sel = select_blur(alt_setup.full, alt_setup.folds, candidates=candidates,
+                          q_starts=q_starts)
+    if any(n in alt_sel.final.effects for n in ISOTROPIC):
+        return model, setup, sel
+    alt = alt.without(q=alt_sel.final.q, blur=dict(alt_sel.final.effects))
+    return alt, alt_setup, alt_sel
 
 
 def _affine_residual(model_g: np.ndarray, real_g: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -584,9 +675,13 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     if q_hi is None:
         q_hi = max(2.5, 1.3 * q_base)
     setup = _spectral_setup(inp, model, fit_mask, q_lo, q_hi)
-    sel = select_blur(setup.full, setup.folds, candidates=blur_candidates,
-                      q_starts=(float(np.clip(q_base, q_lo, q_hi)), 1.5))
+    q_starts = (float(np.clip(q_base, q_lo, q_hi)), 1.5)
+    sel = select_blur(setup.full, setup.folds, candidates=blur_candidates, q_starts=q_starts)
     model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
+    model, setup, sel = _joint_jpeg_blur(inp, model, setup, sel, fit_mask, q_lo, q_hi,
+                                         blur_candidates, q_starts)
+    model, setup, sel = _jpeg_robust_isotropic(inp, model, setup, sel, fit_mask, q_lo, q_hi,
+                                               blur_candidates, q_starts)
     model = _fit_radiometry(inp, model, fit_mask)
     if model.compression is None:
         # second look, against the refined model: the baseline's blur misfit can hide the
