@@ -56,7 +56,11 @@ AMBIGUITY_CV = 0.25
 #: (parameter, smallest or largest value that is clearly away from the effect's null)
 EFFECT_SIZE: dict[str, tuple[str, str, float]] = {
     "detector_integration": ("pitch_px", ">=", 0.5),
-    "atmospheric_blur": ("f0_cyc_per_px", "<=", 1.0),
+    # f0 0.65 leaves half the contrast at Nyquist (0.52). Set on the development half:
+    # atmospheres found right were fitted at f0 0.42-0.55; weaker ones (0.75-0.79) stood in
+    # for what the model missed elsewhere (a JPEG quality estimated too high, resampling, a
+    # short smear), never for a real atmosphere
+    "atmospheric_blur": ("f0_cyc_per_px", "<=", 0.65),
     "motion_smear": ("length_px", ">=", 0.8),
     # the σ of a 0.8 px box (0.8/√12): the same size limit as the smear's
     "off_nadir_anisotropy": ("sigma_px", ">=", 0.23),
