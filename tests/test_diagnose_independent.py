@@ -122,3 +122,20 @@ def test_presampling_resampling_with_atmosphere_both_named():
     assert abs(claimed["resampling"]["params"]["native_pitch_px"] - 1.5) < 0.3
     # better than the baseline (here 0.29 -> 0.15: just short of the benchmark's ½ target)
     assert se_ref < 0.75 * se_base, (se_base, se_ref)
+
+
+
+def test_jpeg_alone_is_not_called_an_isotropic_blur():
+    """A JPEG'd product (Pillow, after sampling) loses high frequencies, and JPEG lowers the
+    Laplacian variance, so the LV baseline's Q (and the top of the Q grid derived from it)
+    can lie below the true Q. Before, Q was pinned at that top (2.5) and
+    ``atmospheric_blur`` (f0 0.66) stood in for the missing optics and the JPEG's loss. Now
+    the Q grid is extended when Q is pinned, and the JPEG quality and the blur are fitted
+    to a common fixed point: no isotropic blur, Q and the quality near the truth."""
+    truth = {"compression": {"quality": 30}}
+    claimed, se_base, se_ref, d = _run(truth, q=2.9, seed=16)
+    assert "compression" in claimed, list(claimed)
+    assert not {"atmospheric_blur", "detector_integration"} & set(claimed), list(claimed)
+    assert abs(d.summary["refined"]["q"] - 2.9) < 0.25, d.summary["refined"]["q"]
+    assert abs(claimed["compression"]["params"]["quality"] - 30) <= 6
+    assert se_ref <= 0.5 * se_base, (se_base, se_ref)

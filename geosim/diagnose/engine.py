@@ -100,6 +100,9 @@ JPEG_MAX_ROUNDS = 3
 #: scatters by up to ≈ 25 % in step size on the development half, and a too-fine JPEG
 #: leaves high frequencies that an isotropic blur then removes in its place)
 JPEG_STEP_MARGIN = 1.25
+#: Q grid extension when the fitted Q is pinned at its upper end (factor, largest Q)
+Q_EXTEND = 1.5
+Q_MAX = 6.0
 #: effects whose smooth isotropic roll-off the JPEG's high-frequency loss can imitate
 ISOTROPIC = ("detector_integration", "atmospheric_blur")
 
@@ -333,8 +336,7 @@ def _joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel
         seen.add(qual)
         model = model.without(compression=CompressionFit(qual, c.offset_px, c.test),
                               q=inp.q_base, blur={})
-        setup = _spectral_setup(inp, model, fit_mask, q_lo, q_hi)
-        sel = select_blur(setup.full, setup.folds, candidates=candidates, q_starts=q_starts)
+        setup, sel = _select(inp, model, fit_mask, q_lo, q_hi, candidates, q_starts)
         model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
     return model, setup, sel
 
@@ -366,9 +368,7 @@ def _jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetu
     q_low = jpeg_quality_for_scale(JPEG_STEP_MARGIN * jpeg_step_scale(c.quality))
     alt = model.without(compression=CompressionFit(q_low, c.offset_px, c.test),
                         q=inp.q_base, blur={})
-    alt_setup = _spectral_setup(inp, alt, fit_mask, q_lo, q_hi)
-    alt_sel = select_blur(alt_setup.full, alt_setup.folds, candidates=candidates,
-                          q_starts=q_starts)
+    alt_setup, alt_sel = _select(inp, alt, fit_mask, q_lo, q_hi, candidates, q_starts)
     if any(n in alt_sel.final.effects for n in ISOTROPIC):
         return model, setup, sel
     alt = alt.without(q=alt_sel.final.q, blur=dict(alt_sel.final.effects))
@@ -413,6 +413,26 @@ def _folds(origins: list[tuple[int, int]], block_px: int, shape: tuple[int, int]
         k = 2 * int(o[0] + block_px / 2 >= rows / 2) + int(o[1] + block_px / 2 >= cols / 2)
         groups[k].append(o)
     return [g for g in groups if len(g) >= 2]
+
+
+def _select(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float, q_hi: float,
+            candidates: tuple[str, ...], q_starts: tuple[float, float]
+            ) -> tuple[SpectralSetup, BlurSelection]:
+    """Q grid, Welch blocks and forward blur selection, with room for Q.
+
+    The Q grid ends at ``q_hi`` (from the LV baseline, which noise and JPEG pull far from
+    the true Q). When Q alone (the null model) or Q with the chosen blur is pinned at that
+    end, the scene is blurrier than the grid allows and an isotropic blur stands in for
+    the missing optics; the grid is then extended (× :data:`Q_EXTEND`, up to
+    :data:`Q_MAX`) and the selection redone. The grid is not widened otherwise: a wide
+    grid lets Q absorb real isotropic blurs (tried and reverted before)."""
+    while True:
+        setup = _spectral_setup(inp, model, fit_mask, q_lo, q_hi)
+        sel = select_blur(setup.full, setup.folds, candidates=candidates, q_starts=q_starts)
+        top = setup.q_grid[-1] / 1.01
+        if q_hi >= Q_MAX or not (sel.null.q >= top or sel.final.q >= top):
+            return setup, sel
+        q_hi = min(Q_MAX, Q_EXTEND * q_hi)
 
 
 def _spectral_setup(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
@@ -674,9 +694,8 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     fit_mask = inp.valid & ~locate.regions_mask(labels0, regions0, kind=None)
     if q_hi is None:
         q_hi = max(2.5, 1.3 * q_base)
-    setup = _spectral_setup(inp, model, fit_mask, q_lo, q_hi)
     q_starts = (float(np.clip(q_base, q_lo, q_hi)), 1.5)
-    sel = select_blur(setup.full, setup.folds, candidates=blur_candidates, q_starts=q_starts)
+    setup, sel = _select(inp, model, fit_mask, q_lo, q_hi, blur_candidates, q_starts)
     model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
     model, setup, sel = _joint_jpeg_blur(inp, model, setup, sel, fit_mask, q_lo, q_hi,
                                          blur_candidates, q_starts)
