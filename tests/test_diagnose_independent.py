@@ -139,3 +139,12 @@ def test_jpeg_alone_is_not_called_an_isotropic_blur():
     assert abs(d.summary["refined"]["q"] - 2.9) < 0.25, d.summary["refined"]["q"]
     assert abs(claimed["compression"]["params"]["quality"] - 30) <= 6
     assert se_ref <= 0.5 * se_base, (se_base, se_ref)
+
+
+def test_jpeg_at_high_q_is_not_called_resampling():
+    """At Q 4 the optics cut the band below the product Nyquist; resampling's pitch scanned
+    on the power spectrum then ran to the end of its scan (2.0 px) to absorb the JPEG
+    model's high-frequency misfit. A pitch pinned at an end of the scan is not claimed."""
+    claimed, se_base, se_ref, _ = _run({"compression": {"quality": 50}}, q=4.0, seed=15)
+    assert set(claimed) == {"compression"}, list(claimed)
+    assert se_ref <= 0.5 * se_base, (se_base, se_ref)
