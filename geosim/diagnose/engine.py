@@ -242,9 +242,15 @@ def _coregister(inp: Inputs) -> Registration:
     if not inp.valid.all():
         fill_idx = ndimage.distance_transform_edt(~inp.valid, return_distances=False,
                                                   return_indices=True)
+    presampled = None
+    shifted = getattr(inp.simulate, "shifted", None)
+    if applied and field_px is None and callable(shifted):
+        # a global shift is applied to the UAV image before the optics and sampling, as the
+        # real misregistration acts (see QSimulator.shifted)
+        presampled = shifted(est.shift_px)
     return Registration(estimate=est, affine=aff, applied=applied,
                         shift_px=est.shift_px if applied else (0.0, 0.0), whole_px=whole,
-                        field_px=field_px, fill_idx=fill_idx)
+                        field_px=field_px, fill_idx=fill_idx, presampled=presampled)
 
 
 def _field_sigma_px(aff: AffineEstimate, corners: np.ndarray) -> float:

@@ -53,6 +53,19 @@ class Registration:
     whole_px: tuple[float, float]
     field_px: tuple[np.ndarray, np.ndarray] | None = None
     fill_idx: np.ndarray | None = None
+    #: ``presampled(q)``: the paper's model at q of the UAV image moved by ``shift_px``
+    #: on the fine grid, before optics and sampling (where a real misregistration acts);
+    #: used instead of moving the sampled simulation when given (a global shift only)
+    presampled: Callable[[float], np.ndarray] | None = None
+
+    def simulation(self, simulate: Callable[[float], np.ndarray], q: float) -> np.ndarray:
+        """The paper's model at ``q`` moved onto the real scene: moved before sampling when
+        :attr:`presampled` is available, else the sampled simulation moved (:meth:`move`)."""
+        if self.applied and self.field_px is None and self.presampled is not None:
+            s = np.asarray(self.presampled(q), float)
+            s = s[np.newaxis] if s.ndim == 2 else s
+            return s[:, self.fill_idx[0], self.fill_idx[1]] if self.fill_idx is not None else s
+        return self.move(simulate(q))
 
     def move(self, sim: np.ndarray) -> np.ndarray:
         """A bands-first simulation, invalid pixels filled from the nearest valid, moved."""
@@ -149,7 +162,7 @@ class ForwardModel:
                compressed: bool = True) -> np.ndarray:
         """Paper's model at ``q`` (default: the model's), moved and (unless ``compressed``
         is False) compressed."""
-        s = self.registration.move(simulate(self.q if q is None else q))
+        s = self.registration.simulation(simulate, self.q if q is None else q)
         if compressed and self.compression is not None:
             return self.compression.apply(s)
         return s

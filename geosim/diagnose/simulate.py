@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from geosim.degrade.core import SpectralDegrader, degrade_array
+from geosim.physics.geometry import fourier_shift
 
 __all__ = ["paper_model", "QSimulator"]
 
@@ -56,3 +57,18 @@ class QSimulator:
             else:
                 self._cache[key] = paper_model(self.uav, q=key, phi=self.phi, valid=self.valid)
         return self._cache[key]
+
+    def shifted(self, shift_px: tuple[float, float]) -> QSimulator | None:
+        """The same simulator for the UAV image moved by ``shift_px`` (d_col, d_row) pixels
+        of the **satellite** grid, the move made on the fine grid *before* the optics and
+        sampling, where a real misregistration acts. Moving the sampled simulation instead
+        is not the same when the optics pass content above the satellite Nyquist (Q ≲ 1.2):
+        the aliased part then moves by a different phase, loses its coherence with the
+        scene and looks like blur and noise. ``None`` when the UAV image has invalid pixels
+        (the caller then moves the sampled simulation).
+        """
+        if self.valid is not None and not np.all(self.valid):
+            return None
+        d = (float(shift_px[0]) * self.phi, float(shift_px[1]) * self.phi)
+        moved = fourier_shift(np.asarray(self.uav, dtype=float), d).astype(self.uav.dtype)
+        return QSimulator(moved, phi=self.phi, valid=self.valid, q_min=self.q_min)
