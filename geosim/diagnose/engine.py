@@ -26,6 +26,7 @@ from scipy import ndimage
 from geosim.diagnose import locate
 from geosim.diagnose.coregister import AffineEstimate, estimate_affine, estimate_shift
 from geosim.diagnose.effects import BLUR_EFFECTS
+from geosim.diagnose.exact import ExactBlocks, ExactSimulations, duel, exact_fit
 from geosim.diagnose.fit import (
     SpectralData,
     build_spectral_data,
@@ -43,8 +44,12 @@ from geosim.diagnose.model import (
 from geosim.diagnose.noise import estimate_noise
 from geosim.diagnose.seam import find_gain_step
 from geosim.diagnose.select import (
+    AMBIGUITY_CV,
+    BLUR_FAMILY,
+    MIN_CV_GAIN,
     MIN_DELTA_BIC,
     AcceptedEffect,
+    Alternative,
     BlurSelection,
     at_bound,
     clearly_present,
@@ -485,6 +490,59 @@ def _spectral_setup(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo
                          full=full, folds=folds, n_screened=len(rho) - len(origins))
 
 
+def _exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
+                       ) -> BlurSelection:
+    """Choose the anisotropic blur by the exact (window-aware) model and refit the chosen
+    blur with it (:mod:`geosim.diagnose.exact`).
+
+    The fast fit sees every blur through the Welch window's leakage, which smooths a sinc
+    towards a Gaussian and shortens it; between ``motion_smear`` and
+    ``off_nadir_anisotropy`` — the same family, told apart only by the shape of the
+    roll-off — the exact model's held-out χ² decides. The chosen effects, Q and gain are
+    then the exact model's joint fit (on all blocks)."""
+    k = next((i for i, st in enumerate(sel.steps)
+              if BLUR_FAMILY.get(st.name) == "anisotropic"), None)
+    if k is None:
+        return sel
+    old = sel.steps[k].name
+    members = [c for c, fam in BLUR_FAMILY.items() if fam == "anisotropic"]
+    others = [n for n in sel.final.effects if n != old]
+    qs = (sel.final.q, inp.q_base)
+    starts = {m: fit_transfer(setup.full, [*others, m], q_starts=qs) for m in members}
+    without = fit_transfer(setup.full, others, q_starts=qs) if others else sel.null
+    sims = ExactSimulations(setup.sims_grey, setup.q_grid)
+    full = ExactBlocks.build(sims, inp.grey, setup.origins, setup.block_px)
+    groups = _folds(setup.origins, setup.block_px, inp.valid.shape)
+    folds = []
+    if len(groups) >= 2:
+        for j, g in enumerate(groups):
+            train = [o for i, gg in enumerate(groups) if i != j for o in gg]
+            folds.append((ExactBlocks.build(sims, inp.grey, train, setup.block_px),
+                          ExactBlocks.build(sims, inp.grey, g, setup.block_px)))
+    res = duel(sims, full, folds, starts, without)
+    ok = [m for m in members if not at_bound(m, res.fits[m].effects[m])
+          and clearly_present(m, res.fits[m].effects[m])]
+    if not ok:
+        return sel
+    best = min(ok, key=res.cv.__getitem__)
+    fit = res.fits[best]
+    gb = res.gains[best]
+    alts = [Alternative(m, float(res.gains[m]), dict(res.fits[m].effects[m])) for m in ok
+            if m != best and res.gains[m] >= MIN_CV_GAIN
+            and gb - res.gains[m] <= AMBIGUITY_CV * gb]
+    n_values = 2 * setup.full.t_real.size
+    dbic = delta_bic(exact_fit(sims, full, without), fit, n_values)
+    sel.steps[k] = AcceptedEffect(best, dbic, float(gb), alts, fit)
+    for j in range(k + 1, len(sel.steps)):
+        st = sel.steps[j]
+        eff = {(best if n == old else n): (dict(fit.effects[best]) if n == old else p)
+               for n, p in st.fit.effects.items()}
+        sel.steps[j] = replace(st, fit=replace(st.fit, effects=eff))
+    sel.cv_gain.update({m: float(v) for m, v in res.gains.items()})
+    sel.final = fit
+    return sel
+
+
 def _fit_radiometry(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray) -> ForwardModel:
     """Exposure seam, then haze / colour response, on the blurred model."""
     m_blur = model.without(seam=None).blurred(inp.simulate)
@@ -744,6 +802,10 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
                                          blur_candidates, q_starts)
     model, setup, sel = _jpeg_robust_isotropic(inp, model, setup, sel, fit_mask, q_lo, q_hi,
                                                blur_candidates, q_starts)
+    fast_final = sel.final
+    sel = _exact_anisotropic(inp, setup, sel)
+    if sel.final is not fast_final:
+        model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
     model = _fit_radiometry(inp, model, fit_mask)
     if model.compression is None:
         # second look, against the refined model: the baseline's blur misfit can hide the
