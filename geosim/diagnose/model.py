@@ -168,11 +168,43 @@ class ForwardModel:
         return s
 
     def blurred(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
-        """With the blur effects and the seam correction (no radiometry, no compression)."""
-        m = blur_apply(self.sim_at(simulate, compressed=False), self.blur)
+        """With the blur effects and the seam correction (no radiometry, no compression).
+
+        Shift-invariant blurs act on the UAV image before the optics and the sampling when
+        the simulator can render that (``simulate.variant``, e.g.
+        :meth:`geosim.diagnose.simulate.QSimulator.variant`), as the real physics acts;
+        otherwise, and for ``resampling``, on the sampled simulation."""
+        m, rest = self._presampled_blur(simulate)
+        m = blur_apply(m, rest)
         if self.seam is not None:
             m = m * np.where(self.seam.side, self.seam.factor, 1.0)
         return m
+
+    def _presampled_blur(self, simulate: Callable[[float], np.ndarray]
+                         ) -> tuple[np.ndarray, dict[str, dict[str, float]]]:
+        """(the moved simulation, the blur effects still to apply to it): the
+        shift-invariant blurs are applied on the fine grid, before sampling, when the
+        simulator can."""
+        lsi = {n: p for n, p in self.blur.items() if n not in NON_LSI}
+        rest = {n: p for n, p in self.blur.items() if n in NON_LSI}
+        variant = getattr(simulate, "variant", None)
+        if not lsi or not callable(variant):
+            return self.sim_at(simulate, compressed=False), self.blur
+        reg = self.registration
+        pre = reg.applied and reg.field_px is None and reg.presampled is not None
+        key = tuple(sorted((n, tuple(sorted(p.items()))) for n, p in lsi.items()))
+        tr = otf.compose(*[(lambda fy, fx, n=n, p=p: get_effect(n).transfer(fy, fx, **p))
+                           for n, p in lsi.items()])
+        v = variant(shift_px=reg.shift_px if pre else (0.0, 0.0), transfer=tr, key=key)
+        if v is None:
+            return self.sim_at(simulate, compressed=False), self.blur
+        s = np.asarray(v(self.q), float)
+        s = s[np.newaxis] if s.ndim == 2 else s
+        if pre:
+            s = s[:, reg.fill_idx[0], reg.fill_idx[1]] if reg.fill_idx is not None else s
+        else:
+            s = reg.move(s)
+        return s, rest
 
     def _before_compression(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
         m = self.blurred(simulate)

@@ -11,9 +11,14 @@ from __future__ import annotations
 import numpy as np
 
 from geosim.degrade.core import SpectralDegrader, degrade_array
+from geosim.physics import otf
 from geosim.physics.geometry import fourier_shift
+from geosim.physics.otf import TransferFunction
 
-__all__ = ["paper_model", "QSimulator"]
+__all__ = ["paper_model", "QSimulator", "VARIANT_CACHE"]
+
+#: moved / pre-blurred variants of the UAV image a simulator keeps (each holds a copy)
+VARIANT_CACHE = 4
 
 
 def paper_model(uav: np.ndarray, *, q: float, phi: int, valid: np.ndarray | None = None
@@ -47,6 +52,7 @@ class QSimulator:
         self.q_min = float(q_min)
         self._cache: dict[float, np.ndarray] = {}
         self._fast = SpectralDegrader(self.uav, phi=self.phi, q_min=self.q_min, valid=valid)
+        self._variants: dict[object, QSimulator] = {}
 
     def __call__(self, q: float) -> np.ndarray:
         key = round(float(q), 4)
@@ -67,8 +73,36 @@ class QSimulator:
         scene and looks like blur and noise. ``None`` when the UAV image has invalid pixels
         (the caller then moves the sampled simulation).
         """
+        return self.variant(shift_px=shift_px)
+
+    def variant(self, *, shift_px: tuple[float, float] = (0.0, 0.0),
+                transfer: TransferFunction | None = None, key: object = None
+                ) -> QSimulator | None:
+        """The simulator of the UAV image moved by ``shift_px`` (satellite pixels) and
+        filtered by ``transfer`` (a blur given in cycles per **satellite** pixel), both on
+        the fine grid, before the optics and the sampling — where the real physics acts.
+        A blur applied to the sampled simulation cannot remove the aliased power that the
+        same blur, acting before sampling, keeps out of the real scene (Q ≲ 1.5).
+
+        ``key``: a hashable description of ``transfer`` for the cache (the last
+        :data:`VARIANT_CACHE` variants are kept). ``None`` when the UAV image has invalid
+        pixels (the caller then works on the sampled simulation).
+        """
         if self.valid is not None and not np.all(self.valid):
             return None
-        d = (float(shift_px[0]) * self.phi, float(shift_px[1]) * self.phi)
-        moved = fourier_shift(np.asarray(self.uav, dtype=float), d).astype(self.uav.dtype)
-        return QSimulator(moved, phi=self.phi, valid=self.valid, q_min=self.q_min)
+        ck = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6), key)
+        if ck in self._variants:
+            return self._variants[ck]
+        img = np.asarray(self.uav, dtype=float)
+        if shift_px[0] != 0 or shift_px[1] != 0:
+            img = fourier_shift(img, (float(shift_px[0]) * self.phi,
+                                      float(shift_px[1]) * self.phi))
+        if transfer is not None:
+            phi = self.phi
+            img = otf.apply_transfer(img, lambda fy, fx: transfer(fy * phi, fx * phi))
+        out = QSimulator(img.astype(np.float32), phi=self.phi, valid=self.valid,
+                         q_min=self.q_min)
+        if len(self._variants) >= VARIANT_CACHE:
+            self._variants.pop(next(iter(self._variants)))
+        self._variants[ck] = out
+        return out
