@@ -61,7 +61,8 @@ class Registration:
     def simulation(self, simulate: Callable[[float], np.ndarray], q: float) -> np.ndarray:
         """The paper's model at ``q`` moved onto the real scene: moved before sampling when
         :attr:`presampled` is available, else the sampled simulation moved (:meth:`move`)."""
-        if self.applied and self.field_px is None and self.presampled is not None:
+        if (self.applied and self.field_px is None and self.presampled is not None
+                and q >= getattr(self.presampled, "q_min", 0.0)):
             s = np.asarray(self.presampled(q), float)
             s = s[np.newaxis] if s.ndim == 2 else s
             return s[:, self.fill_idx[0], self.fill_idx[1]] if self.fill_idx is not None else s
@@ -188,7 +189,7 @@ class ForwardModel:
         lsi = {n: p for n, p in self.blur.items() if n not in NON_LSI}
         rest = {n: p for n, p in self.blur.items() if n in NON_LSI}
         variant = getattr(simulate, "variant", None)
-        if not lsi or not callable(variant):
+        if not lsi or not callable(variant) or self.q < getattr(simulate, "q_min", 0.0):
             return self.sim_at(simulate, compressed=False), self.blur
         reg = self.registration
         pre = reg.applied and reg.field_px is None and reg.presampled is not None

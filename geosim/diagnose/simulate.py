@@ -17,7 +17,8 @@ from geosim.physics.otf import TransferFunction
 
 __all__ = ["paper_model", "QSimulator", "VARIANT_CACHE"]
 
-#: moved / pre-blurred variants of the UAV image a simulator keeps (each holds a copy)
+#: moved / pre-blurred variants a simulator keeps (each holds only its truncated DCT
+#: coefficients, not the filtered UAV image)
 VARIANT_CACHE = 4
 
 
@@ -45,14 +46,16 @@ class QSimulator:
     """
 
     def __init__(self, uav: np.ndarray, *, phi: int, valid: np.ndarray | None = None,
-                 q_min: float = 0.5) -> None:
-        self.uav = np.asarray(uav)
+                 q_min: float = 0.5, keep_image: bool = True) -> None:
+        self.uav: np.ndarray | None = np.asarray(uav)
         self.phi = int(phi)
         self.valid = valid
         self.q_min = float(q_min)
         self._cache: dict[float, np.ndarray] = {}
         self._fast = SpectralDegrader(self.uav, phi=self.phi, q_min=self.q_min, valid=valid)
         self._variants: dict[object, QSimulator] = {}
+        if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
+            self.uav = None
 
     def __call__(self, q: float) -> np.ndarray:
         key = round(float(q), 4)
@@ -61,6 +64,9 @@ class QSimulator:
                 out = np.asarray(self._fast.degrade(key), dtype=float)
                 self._cache[key] = out[np.newaxis] if out.ndim == 2 else out
             else:
+                if self.uav is None:
+                    raise ValueError(f"q = {key} is below q_min = {self.q_min} of a simulator "
+                                     "that keeps no image (a variant)")
                 self._cache[key] = paper_model(self.uav, q=key, phi=self.phi, valid=self.valid)
         return self._cache[key]
 
@@ -88,7 +94,7 @@ class QSimulator:
         :data:`VARIANT_CACHE` variants are kept). ``None`` when the UAV image has invalid
         pixels (the caller then works on the sampled simulation).
         """
-        if self.valid is not None and not np.all(self.valid):
+        if self.uav is None or (self.valid is not None and not np.all(self.valid)):
             return None
         ck = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6), key)
         if ck in self._variants:
@@ -101,7 +107,7 @@ class QSimulator:
             phi = self.phi
             img = otf.apply_transfer(img, lambda fy, fx: transfer(fy * phi, fx * phi))
         out = QSimulator(img.astype(np.float32), phi=self.phi, valid=self.valid,
-                         q_min=self.q_min)
+                         q_min=self.q_min, keep_image=False)
         if len(self._variants) >= VARIANT_CACHE:
             self._variants.pop(next(iter(self._variants)))
         self._variants[ck] = out
