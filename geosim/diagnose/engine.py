@@ -348,11 +348,28 @@ def _joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel
                 or qual in seen:
             break
         seen.add(qual)
-        model = model.without(compression=CompressionFit(qual, c.offset_px, c.test),
-                              q=inp.q_base, blur={})
-        setup, sel = _select(inp, model, fit_mask, q_lo, q_hi, candidates, q_starts)
-        model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
+        model, setup, sel = _reselect_at_quality(inp, model, qual, fit_mask, q_lo, q_hi,
+                                                 candidates, q_starts)
     return model, setup, sel
+
+
+def _adopt(model: ForwardModel, sel: BlurSelection) -> ForwardModel:
+    """``model`` with the Q and blur effects of the selection's final fit."""
+    return model.without(q=sel.final.q, blur=dict(sel.final.effects))
+
+
+def _reselect_at_quality(inp: Inputs, model: ForwardModel, quality: int, fit_mask: np.ndarray,
+                         q_lo: float, q_hi: float, candidates: tuple[str, ...],
+                         q_starts: tuple[float, float]
+                         ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """The blur selection redone from the baseline Q with the JPEG at ``quality`` (same
+    block offset and test); the model adopts the new selection."""
+    c = model.compression
+    assert c is not None
+    start = model.without(compression=CompressionFit(quality, c.offset_px, c.test),
+                          q=inp.q_base, blur={})
+    setup, sel = _select(inp, start, fit_mask, q_lo, q_hi, candidates, q_starts)
+    return _adopt(start, sel), setup, sel
 
 
 def jpeg_step_scale(quality: int) -> float:
@@ -380,12 +397,10 @@ def _jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetu
     if c is None or not any(n in model.blur for n in ISOTROPIC):
         return model, setup, sel
     q_low = jpeg_quality_for_scale(JPEG_STEP_MARGIN * jpeg_step_scale(c.quality))
-    alt = model.without(compression=CompressionFit(q_low, c.offset_px, c.test),
-                        q=inp.q_base, blur={})
-    alt_setup, alt_sel = _select(inp, alt, fit_mask, q_lo, q_hi, candidates, q_starts)
+    alt, alt_setup, alt_sel = _reselect_at_quality(inp, model, q_low, fit_mask, q_lo, q_hi,
+                                                   candidates, q_starts)
     if any(n in alt_sel.final.effects for n in ISOTROPIC):
         return model, setup, sel
-    alt = alt.without(q=alt_sel.final.q, blur=dict(alt_sel.final.effects))
     return alt, alt_setup, alt_sel
 
 
@@ -797,7 +812,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         q_hi = max(2.5, 1.3 * q_base)
     q_starts = (float(np.clip(q_base, q_lo, q_hi)), 1.5)
     setup, sel = _select(inp, model, fit_mask, q_lo, q_hi, blur_candidates, q_starts)
-    model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
+    model = _adopt(model, sel)
     model, setup, sel = _joint_jpeg_blur(inp, model, setup, sel, fit_mask, q_lo, q_hi,
                                          blur_candidates, q_starts)
     model, setup, sel = _jpeg_robust_isotropic(inp, model, setup, sel, fit_mask, q_lo, q_hi,
@@ -805,7 +820,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     fast_final = sel.final
     sel = _exact_anisotropic(inp, setup, sel)
     if sel.final is not fast_final:
-        model = model.without(q=sel.final.q, blur=dict(sel.final.effects))
+        model = _adopt(model, sel)
     model = _fit_radiometry(inp, model, fit_mask)
     if model.compression is None:
         # second look, against the refined model: the baseline's blur misfit can hide the
