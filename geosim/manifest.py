@@ -57,7 +57,9 @@ def _name(path: Path, out: Path) -> str:
         return str(path.resolve())
 
 
-def _stat(path: Path) -> dict[str, int]:
+def file_stat(path: Path) -> dict[str, int]:
+    """``{"size", "mtime_ns"}`` of a file: with its path, what calls an input unchanged
+    without hashing it again (here and in run.json's ``inputs``)."""
     st = path.stat()
     return {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
@@ -85,7 +87,7 @@ def _sha256(path: Path) -> str:
 
 def _input_unchanged(path: Path, recorded: Mapping[str, Any]) -> bool:
     try:
-        now = _stat(path)
+        now = file_stat(path)
     except OSError:
         return False
     if now["size"] != recorded.get("size"):
@@ -133,7 +135,7 @@ def cached(out_dir: PathLike, key: str, inputs: Iterable[PathLike],
         return None
     for p in outputs:
         try:
-            if _stat(p) != recorded_out[_name(p, out)]:
+            if file_stat(p) != recorded_out[_name(p, out)]:
                 return None
         except OSError:
             return None
@@ -153,9 +155,9 @@ def record(out_dir: PathLike, key: str, inputs: Iterable[PathLike], params: Mapp
         "format": FORMAT,
         "key": key,
         "params_sha256": params_digest(params),
-        "inputs": {_name(Path(p), out): {**_stat(Path(p)), "sha256": _sha256(Path(p))}
+        "inputs": {_name(Path(p), out): {**file_stat(Path(p)), "sha256": _sha256(Path(p))}
                    for p in inputs},
-        "outputs": {_name(Path(p), out): _stat(Path(p)) for p in outputs},
+        "outputs": {_name(Path(p), out): file_stat(Path(p)) for p in outputs},
         "result": result,
     }
     write_json(_entry_path(out, key), entry)

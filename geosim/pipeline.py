@@ -44,6 +44,7 @@ from geosim.io.atomic import recording_outputs, to_jsonable, write_json
 from geosim.io.raster import sha256_file
 from geosim.log import get_logger
 from geosim.log import info as log_info
+from geosim.manifest import file_stat
 from geosim.result import StepResult
 from geosim.rundir import RunDir
 from geosim.validate import check_out_dir, preflight
@@ -138,8 +139,7 @@ def file_checksums(paths: Mapping[str, Path | None], known: Mapping[str, Any] | 
             files[key] = p
     out: dict[str, dict[str, Any]] = {}
     for k, p in files.items():
-        st = p.stat()
-        entry = {"path": str(p), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+        entry: dict[str, Any] = {"path": str(p), **file_stat(p)}
         old = (known or {}).get(k)
         if (isinstance(old, dict) and isinstance(old.get("sha256"), str)
                 and all(old.get(f) == v for f, v in entry.items())):
