@@ -40,8 +40,8 @@ from geosim.io.raster import (
     BLOCK_PX,
     alpha_band_index,
     image_band_indexes,
+    naming_read_failures,
     open_raster,
-    read_failure,
     read_valid_mask,
 )
 from geosim.prepare.pairs import COLUMNS
@@ -159,7 +159,6 @@ def read_tile(path: Path, *, what: str) -> Tile:
     Float64 rasters are read as float32; other unsupported dtypes are refused.
     """
     from rasterio.enums import MaskFlags
-    from rasterio.errors import RasterioError
 
     with open_raster(path, what=what, require_crs=False) as ds:
         bands = image_band_indexes(ds)
@@ -173,18 +172,13 @@ def read_tile(path: Path, *, what: str) -> Tile:
             raise RasterError(f"{what}: {path} has data type {dtype}; augmentation supports "
                               "uint8, uint16, int16 and float32 images; convert it first")
         hwc = np.empty((ds.height, ds.width, len(bands)), dtype)
-        try:
+        with naming_read_failures(path):
             ds.read(bands, out=np.moveaxis(hwc, -1, 0))
             if alpha_band_index(ds) is None and all(
                     MaskFlags.all_valid in ds.mask_flag_enums[i - 1] for i in bands):
                 valid = np.ones(hwc.shape[:2], bool)  # no mask, alpha or nodata
             else:
                 valid = read_valid_mask(ds)
-        except RasterioError as exc:  # a block cut short: GDAL names the bytes, not the file
-            failure = read_failure(exc)
-            if failure is None:
-                raise
-            raise type(failure)(f"{path}: {failure}") from exc
         names = tuple(ds.descriptions[i - 1] for i in bands)
     return Tile(path, AugImage(np.moveaxis(hwc, -1, 0), valid), georef, names)
 

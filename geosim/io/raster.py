@@ -230,26 +230,19 @@ def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
         arrays returned are valid only until the next ``read_raster(...,
         reuse_buffers=True)`` in this thread.
     """
-    from rasterio.errors import RasterioError
-
-    with open_raster(path, what=what, require_crs=require_crs) as ds:
-        try:
-            out = valid_out = None
-            if reuse_buffers and window is None:
-                idx = list(bands) if bands is not None else image_band_indexes(ds)
-                idx = idx[:max_bands] if max_bands is not None else idx
-                dtype = out_dtype if out_dtype is not None else ds.dtypes[idx[0] - 1]
-                out = scratch_array("read_raster.image", (len(idx), ds.height, ds.width),
-                                    dtype)
-                valid_out = scratch_array("read_raster.valid", (ds.height, ds.width), bool)
-            return read_window(ds, window, bands=bands, max_bands=max_bands,
-                               out_dtype=out_dtype, boundless=boundless, path=path,
-                               out=out, valid_out=valid_out)
-        except RasterioError as exc:  # a block cut short: GDAL names the bytes, not the file
-            failure = read_failure(exc)
-            if failure is None:
-                raise
-            raise type(failure)(f"{path}: {failure}") from exc
+    with open_raster(path, what=what, require_crs=require_crs) as ds, \
+            naming_read_failures(path):
+        out = valid_out = None
+        if reuse_buffers and window is None:
+            idx = list(bands) if bands is not None else image_band_indexes(ds)
+            idx = idx[:max_bands] if max_bands is not None else idx
+            dtype = out_dtype if out_dtype is not None else ds.dtypes[idx[0] - 1]
+            out = scratch_array("read_raster.image", (len(idx), ds.height, ds.width),
+                                dtype)
+            valid_out = scratch_array("read_raster.valid", (ds.height, ds.width), bool)
+        return read_window(ds, window, bands=bands, max_bands=max_bands,
+                           out_dtype=out_dtype, boundless=boundless, path=path,
+                           out=out, valid_out=valid_out)
 
 
 def geotiff_profile(*, width: int, height: int, count: int, dtype: str | np.dtype,
@@ -415,6 +408,21 @@ def read_failure(exc: BaseException) -> RasterError | None:
     return RasterError(f"a raster cannot be read: {detail}; it is truncated or corrupt: if "
                        "it is in the run folder, delete it and rerun the step that wrote it, "
                        "otherwise re-copy the input")
+
+
+@contextlib.contextmanager
+def naming_read_failures(path: str | os.PathLike[str]) -> Iterator[None]:
+    """A failed read of ``path`` inside the block becomes the one-line
+    :class:`RasterError` of :func:`read_failure`, naming the file; other errors pass."""
+    from rasterio.errors import RasterioError
+
+    try:
+        yield
+    except RasterioError as exc:  # a block cut short: GDAL names the bytes, not the file
+        failure = read_failure(exc)
+        if failure is None:
+            raise
+        raise type(failure)(f"{path}: {failure}") from exc
 
 
 def band_descriptions(src: rasterio.DatasetReader, bands: list[int]) -> list[str]:

@@ -12,7 +12,6 @@ at least in part is kept, with its mask (pixels outside the data are masked).
 
 from __future__ import annotations
 
-import contextlib
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -23,7 +22,7 @@ from affine import Affine
 from rasterio.windows import Window
 from rasterio.windows import bounds as window_bounds
 
-from geosim.io.raster import create_geotiff
+from geosim.io.raster import create_geotiff, naming_read_failures
 
 
 def tile_id(row: int, col: int) -> str:
@@ -88,22 +87,6 @@ def select_tiles(tiles: Sequence[TileSpec], coverage: Mapping[str, Sequence[floa
     return out
 
 
-@contextlib.contextmanager
-def _naming_read_failures(path: str) -> Iterator[None]:
-    """A failed read of ``path`` becomes one-line RasterError that names the file."""
-    from rasterio.errors import RasterioError
-
-    from geosim.io.raster import read_failure
-
-    try:
-        yield
-    except RasterioError as exc:
-        err = read_failure(exc)
-        if err is None:
-            raise
-        raise type(err)(f"{path}: {err}") from exc
-
-
 @dataclass(frozen=True)
 class WarpTileTask:
     """One tile of one flight, resampled once from the original flight (an engine task).
@@ -130,7 +113,7 @@ def warp_tile_task(task: WarpTileTask) -> str:
 
     win = task.tile.window
     width, height = int(win.width), int(win.height)
-    with _naming_read_failures(task.flight.warp.src_path if task.flight.warp is not None
+    with naming_read_failures(task.flight.warp.src_path if task.flight.warp is not None
                                else str(task.flight.path)), task.flight.open() as reader:
         img = np.zeros((reader.count, height, width), dtype=reader.dtype)
         valid = np.zeros((height, width), dtype=bool)
