@@ -175,6 +175,69 @@ def test_fill_invalid_keeps_valid_and_stays_in_range() -> None:
     np.testing.assert_allclose(core.fill_invalid(flat, mask), 42.0)
 
 
+def _fill_invalid_plain(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The pull-push fill written plainly (geosim's implementation before it was made to
+    share the weights, skip the full-resolution mean and take level 1 in integers)."""
+    stack = (image[None] if image.ndim == 2 else image).astype(np.float32)
+    weight = valid.astype(np.float32)
+    out = np.empty_like(stack)
+    for i, band in enumerate(stack):
+        levels = [(band * weight, weight)]
+        while max(levels[-1][1].shape) > 1:
+            a, w = levels[-1]
+            size = (max(1, (a.shape[1] + 1) // 2), max(1, (a.shape[0] + 1) // 2))
+            levels.append((cv2.resize(a, size, interpolation=cv2.INTER_AREA),
+                           cv2.resize(w, size, interpolation=cv2.INTER_AREA)))
+        estimate = None
+        for a, w in reversed(levels):
+            has = w > 1e-6
+            mean = np.divide(a, w, out=np.zeros_like(a), where=has)
+            if estimate is None:
+                estimate = mean
+            else:
+                up = cv2.resize(estimate, (a.shape[1], a.shape[0]),
+                                interpolation=cv2.INTER_LINEAR)
+                estimate = np.where(has, mean, up)
+        out[i] = np.where(valid, band, estimate)
+    return out[0] if image.ndim == 2 else out
+
+
+@pytest.mark.parametrize(("shape", "dtype"), [((3, 600, 800), np.uint8), ((3, 601, 800), np.uint8),
+                                              ((2, 512, 333), np.uint8),
+                                              ((3, 600, 800), np.uint16),
+                                              ((600, 800), np.float32), ((1, 1), np.uint8),
+                                              ((2, 2), np.uint8)])
+def test_fill_invalid_equals_plain_pull_push(shape: tuple[int, ...], dtype: type) -> None:
+    """Bit for bit the plain pyramid, for uint8 (integer level 1 on even sizes), odd
+    sizes, other dtypes; masks with holes, edges and isolated valid pixels; all-255."""
+    rng = np.random.default_rng(sum(shape))
+    rows, cols = shape[-2:]
+    top = 255 if dtype == np.uint8 else 4000
+    image = rng.integers(0, top + 1, shape).astype(dtype)
+    if dtype == np.float32:
+        image = image + rng.random(shape).astype(np.float32)
+    masks = [rng.random((rows, cols)) > 0.3]
+    edge = np.ones((rows, cols), bool)
+    edge[:, : cols // 3] = False
+    edge[: rows // 4] = False
+    masks.append(edge)
+    sparse = np.zeros((rows, cols), bool)
+    sparse[rows // 2, cols // 2] = True
+    masks.append(sparse)
+    for valid in (m for m in masks if m.any()):
+        expected = _fill_invalid_plain(image, valid)
+        np.testing.assert_array_equal(core.fill_invalid(image, valid), expected)
+        filler = core.InvalidFill(valid, (rows, cols))
+        stack = image[None] if image.ndim == 2 else image
+        for b, band in enumerate(stack):
+            out = np.full((rows, cols), np.nan, np.float32)
+            filler.fill(band, out=out)
+            np.testing.assert_array_equal(out, expected[b] if image.ndim == 3 else expected)
+    full = np.full((rows, cols), top, dtype)
+    np.testing.assert_array_equal(core.fill_invalid(full, masks[-1]),
+                                  _fill_invalid_plain(full, masks[-1]))
+
+
 def test_to_dtype_rounds_and_clips() -> None:
     out = core.to_dtype(np.array([-3.0, 0.5, 1.5, 2.49, 254.5, 300.0]), np.uint8)
     np.testing.assert_array_equal(out, [0, 0, 2, 2, 254, 255])
