@@ -38,6 +38,7 @@ from typing import Any, Protocol, TypeVar
 from tqdm import tqdm
 
 from geosim.errors import ConfigError, EngineError
+from geosim.heap import keep_freed_heap
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -77,6 +78,7 @@ class InProcess:
         items = list(items)
         out = []
         threads = in_process_threads()
+        keep_freed_heap()
         for item in tqdm(items, desc=desc, unit="task", disable=None, leave=False):
             with task_limits(threads):
                 out.append(fn(item))
@@ -108,6 +110,7 @@ def _setup_worker(quiet: bool = False) -> dict[str, str]:
         logging.getLogger("distributed.worker").setLevel(logging.CRITICAL)
     for key, value in WORKER_ENV.items():
         os.environ.setdefault(key, value)
+    keep_freed_heap()  # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536
     import cv2
 
     cv2.setNumThreads(1)
@@ -316,7 +319,10 @@ class LocalCluster(DaskEngine):
         env = {**WORKER_ENV, "PYTHONPATH": python_path}
         try:
             with dask.config.set({"distributed.worker.daemon": False,
-                                  "distributed.logging.distributed": "error"}):
+                                  "distributed.logging.distributed": "error",
+                                  # the statistical profiler samples every thread's stack
+                                  # 100 times a second: 2-3 % of a busy worker's CPU
+                                  "distributed.worker.profile.enabled": False}):
                 self._cluster = DaskLocalCluster(
                     n_workers=self.workers, threads_per_worker=1, processes=True,
                     host="127.0.0.1", dashboard_address=None, env=env,

@@ -2,12 +2,16 @@
 
 Every task that finishes an output records, beside the run folder's outputs in
 ``DIR/.geosim/manifest/<output>.json``, a fingerprint of each input (size, mtime and
-SHA-256), a digest of the parameters that determine the output (the geosim version
-included) and the output's own size and mtime. On a rerun the task first asks
-:func:`is_current`: the output is current when its entry exists, the output is still
+SHA-256 — or, for an input that an entry of the same run folder vouches for, the digest
+of what made it, :func:`made_by`, so that a tile just written by ``geosim tile`` is not
+read again only to be hashed), a digest of the parameters that determine the output (the
+geosim version included) and the output's own size and mtime. On a rerun the task first
+asks :func:`is_current`: the output is current when its entry exists, the output is still
 the file that was recorded, every input is unchanged (same size and mtime, or, when
-only the mtime moved, the same SHA-256: an input rewritten with the same bytes does not
-invalidate its outputs) and the parameters digest is the same.
+only the mtime moved, the same SHA-256, or the same ``made_by``: an input rewritten with
+the same bytes does not invalidate its outputs; for a ``made_by`` input that means
+rewritten by its own task from the same inputs and parameters, while one edited or touched
+by hand counts as changed) and the parameters digest is the same.
 
 One small file per output: tasks on different workers (or machines sharing the run
 folder) record their outputs without a shared file to lock. Entries are written
@@ -85,7 +89,44 @@ def _sha256(path: Path) -> str:
     return _SHA_MEMO[key]
 
 
-def _input_unchanged(path: Path, recorded: Mapping[str, Any]) -> bool:
+def made_by(out: Path, name: str, stat: Mapping[str, int]) -> str | None:
+    """Digest of what made the run folder's file ``name``, if its own entry vouches for it.
+
+    A file that a geosim task wrote into the run folder has an entry (under its own
+    name) recording its size and mtime, the parameters digest and its inputs'
+    fingerprints. While the file still has the recorded size and mtime (``stat``), the
+    digest of the parameters and of the inputs' content fingerprints (size and SHA-256,
+    or their own ``made_by``; not their mtimes) identifies its content: geosim's outputs
+    are the same bytes for the same inputs and parameters (the version is in the
+    parameters). None for a file outside the run folder, without an entry, or changed
+    since it was recorded.
+    """
+    if name.startswith("/"):
+        return None
+    try:
+        entry = json.loads(_entry_path(out, name).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(entry, dict) or entry.get("format") != FORMAT \
+            or (entry.get("outputs") or {}).get(name) != dict(stat):
+        return None
+    inputs = entry.get("inputs") or {}
+    ident = {"params_sha256": entry.get("params_sha256"),
+             "inputs": {k: {f: v.get(f) for f in ("size", "sha256", "made_by") if f in v}
+                        for k, v in inputs.items() if isinstance(v, dict)}}
+    return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
+
+
+def _fingerprint(path: Path, out: Path) -> dict[str, Any]:
+    """Size, mtime and what identifies the content of an input: ``made_by`` for a file
+    an entry of this run folder vouches for (no need to read it), else its SHA-256."""
+    stat = file_stat(path)
+    recipe = made_by(out, _name(path, out), stat)
+    return {**stat, "made_by": recipe} if recipe is not None \
+        else {**stat, "sha256": _sha256(path)}
+
+
+def _input_unchanged(path: Path, recorded: Mapping[str, Any], out: Path) -> bool:
     try:
         now = file_stat(path)
     except OSError:
@@ -94,6 +135,8 @@ def _input_unchanged(path: Path, recorded: Mapping[str, Any]) -> bool:
         return False
     if now["mtime_ns"] == recorded.get("mtime_ns"):
         return True
+    if "made_by" in recorded:  # rewritten by its task from the same inputs and parameters
+        return made_by(out, _name(path, out), now) == recorded["made_by"]
     return _sha256(path) == recorded.get("sha256")
 
 
@@ -139,7 +182,7 @@ def cached(out_dir: PathLike, key: str, inputs: Iterable[PathLike],
                 return None
         except OSError:
             return None
-    if not all(_input_unchanged(p, recorded_in[_name(p, out)]) for p in inputs):
+    if not all(_input_unchanged(p, recorded_in[_name(p, out)], out) for p in inputs):
         return None
     return entry
 
@@ -155,8 +198,7 @@ def record(out_dir: PathLike, key: str, inputs: Iterable[PathLike], params: Mapp
         "format": FORMAT,
         "key": key,
         "params_sha256": params_digest(params),
-        "inputs": {_name(Path(p), out): {**file_stat(Path(p)), "sha256": _sha256(Path(p))}
-                   for p in inputs},
+        "inputs": {_name(Path(p), out): _fingerprint(Path(p), out) for p in inputs},
         "outputs": {_name(Path(p), out): file_stat(Path(p)) for p in outputs},
         "result": result,
     }

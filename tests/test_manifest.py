@@ -91,3 +91,42 @@ def test_run_resumable_skips_until_the_task_or_its_input_changes(tmp_path: Path)
     other = manifest.ResumableTask(str(run), _copy, (str(src), str(out), "x"), str(out),
                                    (str(src),))
     assert manifest.run_resumable(other) is False  # another task (its pickle differs)
+
+
+def test_input_made_in_the_run_folder_is_not_hashed_and_tracks_its_recipe(
+        tmp_path: Path, monkeypatch) -> None:
+    """An input with its own entry (a tile written by a task) is fingerprinted by what made
+    it, without reading it: rewritten by its task with the same recipe it stays current;
+    with another recipe, or edited by hand, it is changed."""
+    run, tile, out = _setup(tmp_path)
+    flight = tmp_path / "flight.tif"
+    flight.write_bytes(b"flight")
+    manifest.record_output(run, tile, [flight], {"tile": 1})  # the tile step's entry
+    calls: list[Path] = []
+    real = manifest.sha256_file
+    monkeypatch.setattr(manifest, "sha256_file", lambda p: calls.append(Path(p)) or real(p))
+    manifest.record_output(run, out, [tile], {"q": 2.0})
+    assert Path(tile) not in calls  # the tile was not read to be hashed
+    entry = (run / ".geosim" / "manifest" / "degraded" / "a.tif.json").read_text()
+    assert '"made_by"' in entry and entry.count('"sha256"') == 0
+    assert manifest.is_current(run, out, [tile], {"q": 2.0})
+
+    def rewrite(params: dict, data: bytes = b"input bytes") -> None:
+        st = tile.stat()
+        tile.write_bytes(data)
+        os.utime(tile, ns=(st.st_atime_ns, st.st_mtime_ns + 2_000_000_000))
+        manifest.record_output(run, tile, [flight], params)
+
+    rewrite({"tile": 1})  # the same task again: same bytes, new mtime
+    assert manifest.is_current(run, out, [tile], {"q": 2.0})
+    rewrite({"tile": 2}, b"INPUT BYTES")  # another recipe, same size
+    assert not manifest.is_current(run, out, [tile], {"q": 2.0})
+    manifest.record_output(run, out, [tile], {"q": 2.0})
+    assert manifest.is_current(run, out, [tile], {"q": 2.0})
+    st = tile.stat()  # edited by hand: its entry no longer vouches for it
+    tile.write_bytes(b"input BYTES")
+    os.utime(tile, ns=(st.st_atime_ns, st.st_mtime_ns + 3_000_000_000))
+    assert not manifest.is_current(run, out, [tile], {"q": 2.0})
+    flight.write_bytes(b"FLIGHT")  # an upstream input changed and the tile was remade
+    rewrite({"tile": 2}, b"INPUT BYTES")
+    assert not manifest.is_current(run, out, [tile], {"q": 2.0})
