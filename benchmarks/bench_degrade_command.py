@@ -4,9 +4,10 @@ Both run on the same 5000 × 5000 RGB uint8 tiles (the Brazil pasture orthomosai
 ../shared/realdata mirrored out, or synthetic texture), each in its own child process:
 
 * ``command``: :func:`geosim.degrade.steps.run_degrade` on a run folder holding
-  ``--tiles`` such tiles (tiled, deflate GeoTIFFs with an internal mask, as ``geosim
-  tile`` writes them): reading, degrading (the fast method), writing the 0.5 m
-  GeoTIFFs with their tags — everything the command does except starting Python;
+  ``--tiles`` such tiles (tiled, deflate GeoTIFFs with an internal mask and the manifest
+  entry of each, as ``geosim tile`` leaves them): reading, degrading (the fast method),
+  writing the 0.5 m GeoTIFFs with their tags and manifest entries — everything the
+  command does except starting Python;
 * ``reference``: for one tile, read it with rasterio, then the paper's operation done
   the straightforward way (``method="reference"``: the full-resolution blur with the
   analytic circular-aperture OTF applied by FFT of the symmetric extension — a DCT-II
@@ -60,6 +61,7 @@ def setup(root: Path, size: int, n_tiles: int, codec: str = "deflate") -> Path:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from bench_degrade import make_tile
 
+    from geosim import manifest
     from geosim.io.raster import write_geotiff
 
     tile, _source = make_tile(size)
@@ -70,6 +72,9 @@ def setup(root: Path, size: int, n_tiles: int, codec: str = "deflate") -> Path:
         path = root / "run" / "tiles" / f"F{i}" / "r000_c000.tif"
         write_geotiff(path, np.roll(tile, 97 * i, axis=2), transform=t, crs="EPSG:32756",
                       mask=np.ones(tile.shape[1:], bool), cog_overrides=TILE_CODECS[codec])
+        # the entry `geosim tile` records for each tile it writes (the degrade step's manifest
+        # fingerprints such a tile by what made it instead of hashing its bytes)
+        manifest.record_output(root / "run", path, [], {"benchmark_tile": i, "codec": codec})
         lines += ['[[flights]]', f'id = "F{i}"', f'image = "{path}"',
                   f'acquired = "2021-07-15T1{i}:00:00+10:00"', '']
     (root / "site.toml").write_text("\n".join(lines))
@@ -119,7 +124,7 @@ def _peak_rss_mb() -> float:
 def _run_child(script: Path, task: str, root: Path) -> dict:
     """Run one timed child (its own process) and return its record."""
     if task != "reference":  # every command run degrades every tile (no manifest skips)
-        for sub in ("degraded", ".geosim"):
+        for sub in ("degraded", ".geosim/manifest/degraded"):
             shutil.rmtree(root / "run" / sub, ignore_errors=True)
     proc = subprocess.run([sys.executable, str(script), "--child", task, "--root", str(root)],
                           capture_output=True, text=True, check=True)
