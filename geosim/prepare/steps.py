@@ -668,14 +668,18 @@ def run_tiles(site: SiteConfig, out: RunPath) -> StepResult:
                           f"{why}; set a smaller parameters.tile_px (a multiple of "
                           f"{p.phi}) or keep_partial_tiles = true")
     params = {"tile_px": p.tile_px, "keep_partial_tiles": p.keep_partial_tiles,
-              "resampled": "once, from the original flight (bicubic)"}
+              "resampled": "once, from the original flight (bicubic)",
+              # named only when not the default, so default tiles keep their tags
+              **({"tile_compression": p.tile_compression}
+                 if p.tile_compression != "deflate" else {})}
     jobs = [(t, fid) for t, cov in selected for fid in flights if cov[fid] > 0]
     acquired = {f.id: f.acquired for f in site.flights}
     cut = [WarpTileTask(flights[fid], str(run.tile(fid, t.id)), t,
                         {**provenance_tags("tiles", params, list(flight_inputs(flights[fid])),
                                            base_dir=run.root),
                          "GEOSIM_TILE_ID": t.id, "GEOSIM_FLIGHT": fid,
-                         **acquisition_tags(acquired[fid])}, BLOCK_PX) for t, fid in jobs]
+                         **acquisition_tags(acquired[fid])}, BLOCK_PX, p.tile_compression)
+           for t, fid in jobs]
     n_skipped = sum(parallel_map(run_resumable, [  # resumable: current tiles are skipped
         ResumableTask(str(run.root), warp_tile_task, c, c.dst_path, flight_inputs(c.flight))
         for c in cut], desc="tiles"))

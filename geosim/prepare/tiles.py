@@ -22,6 +22,7 @@ from affine import Affine
 from rasterio.windows import Window
 from rasterio.windows import bounds as window_bounds
 
+from geosim.io.cog import TILE_COMPRESSION_OPTIONS
 from geosim.io.raster import create_geotiff, naming_read_failures
 
 
@@ -101,6 +102,8 @@ class WarpTileTask:
     tile: TileSpec
     tags: Mapping[str, str]
     block_px: int = 2048
+    #: ``parameters.tile_compression`` (:data:`geosim.config.TILE_COMPRESSIONS`).
+    compression: str = "deflate"
 
 
 def warp_tile_task(task: WarpTileTask) -> str:
@@ -125,7 +128,8 @@ def warp_tile_task(task: WarpTileTask) -> str:
         with create_geotiff(task.dst_path, width=width, height=height, count=reader.count,
                             dtype=reader.dtype, crs=reader.crs, transform=task.tile.transform,
                             band_descriptions=reader.descriptions, tags=task.tags,
-                            internal_mask=True) as dst:
+                            internal_mask=True,
+                            cog_overrides=TILE_COMPRESSION_OPTIONS[task.compression]) as dst:
             dst.colorinterp = reader.colorinterp
             dst.write(img)
             dst.write_mask(np.where(valid, 255, 0).astype(np.uint8))
