@@ -173,6 +173,7 @@ def test_local_cluster_order_workers_and_worker_errors(recwarn: pytest.WarningsR
             with pytest.raises(InputFileError, match="tile -1.tif not found"):
                 parallel_map(_square, [2, -1, 3])
             info = engine.describe()
+            worker_state = engine.client.run(_worker_state)
     finally:
         busy.close()
     assert not [w for w in recwarn if "already in use" in str(w.message)]
@@ -181,6 +182,23 @@ def test_local_cluster_order_workers_and_worker_errors(recwarn: pytest.WarningsR
     assert info["scheduler"].startswith("tcp://127.0.0.1:")
     assert 1 <= len(info["workers_used"]) <= 2
     assert all(w.startswith("tcp://127.0.0.1:") for w in info["workers_used"])
+    # Dask's statistical profiler is off on the workers geosim starts, and glibc was told
+    # to keep freed heap despite the nanny's MALLOC_TRIM_THRESHOLD_=65536
+    assert len(worker_state) == 2
+    for state in worker_state.values():
+        assert state == {"profile": False, "trim_env": "65536", "heap_kept": True}
+
+
+def _worker_state() -> dict:
+    import os
+
+    import dask
+
+    from geosim.heap import keep_freed_heap
+
+    return {"profile": dask.config.get("distributed.worker.profile.enabled"),
+            "trim_env": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+            "heap_kept": keep_freed_heap()}
 
 
 def test_worker_error_reaches_the_cli_as_one_line(samples_dir: Path, tmp_path: Path) -> None:
