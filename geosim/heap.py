@@ -7,9 +7,11 @@ mapping whose pages fault in (≈ 10 000 page faults per tile). Dask's worker pr
 make it worse: their nanny starts them with ``MALLOC_TRIM_THRESHOLD_=65536``
 (``distributed.nanny.pre-spawn-environ``), which also switches off glibc's dynamic
 raising of both thresholds. :func:`keep_freed_heap` raises them once per process, so
-freed blocks are reused (docs/scale.md: the read of a tile 0.20–0.22 → 0.18 CPU-s, page
-faults halved). The peak memory does not change; what the process gave back between
-tasks (at most :data:`TRIM_THRESHOLD_BYTES`) stays resident. A no-op where the C
+freed blocks are reused: page faults of a tile's read 10 300 → 4 800 (docs/scale.md);
+its CPU effect was within the noise of the loaded machine it was measured on. The peak
+memory of the degrade command did not change (329–334 MB, main's 329 MB,
+benchmarks/bench_degrade_command.py); what the process gave back between tasks (at most
+:data:`TRIM_THRESHOLD_BYTES` at the heap's top) stays resident. A no-op where the C
 library is not glibc.
 """
 
@@ -22,8 +24,11 @@ import threading
 #: Allocations below this come from the heap, above it from their own mapping (glibc
 #: caps it at 32 MiB on 64-bit systems).
 MMAP_THRESHOLD_BYTES = 32 << 20
-#: Free memory at the heap's top kept before it is returned to the kernel.
-TRIM_THRESHOLD_BYTES = 256 << 20
+#: Free memory at the heap's top kept before it is returned to the kernel. With these two
+#: values a worker behaves as glibc's own dynamic thresholds settle in a plain process
+#: (the mmap threshold rises to the largest freed mapping, up to 32 MiB, and the trim
+#: threshold to twice that), which the nanny's variable switches off.
+TRIM_THRESHOLD_BYTES = 64 << 20
 _M_TRIM_THRESHOLD = -1  # glibc's mallopt parameters (malloc.h)
 _M_MMAP_THRESHOLD = -3
 
