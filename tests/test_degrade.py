@@ -238,6 +238,24 @@ def test_fill_invalid_equals_plain_pull_push(shape: tuple[int, ...], dtype: type
                                   _fill_invalid_plain(full, masks[-1]))
 
 
+def test_partial_tile_fill_same_on_one_and_two_threads() -> None:
+    """The fill (OpenCV resizes) and the fast path give the same bits whatever the task's
+    thread budget (one on a Dask worker, every core in-process)."""
+    from geosim.engine import task_limits
+
+    image = textured_rgb(640, 480, seed=9)
+    valid = np.ones((640, 480), bool)
+    valid[:, :130] = False
+    valid[:70] = False
+    outs = []
+    for threads in (1, 2):
+        with task_limits(threads):
+            outs.append((core.fill_invalid(image, valid),
+                         core.degrade_array(image, q=4.34, valid=valid, reuse_buffers=True)[0]))
+    for a, b in zip(*outs, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_to_dtype_rounds_and_clips() -> None:
     out = core.to_dtype(np.array([-3.0, 0.5, 1.5, 2.49, 254.5, 300.0]), np.uint8)
     np.testing.assert_array_equal(out, [0, 0, 2, 2, 254, 255])
