@@ -194,7 +194,7 @@ def _end_to_end(size: int, n: int, a: AugImage, b: AugImage, seed: int = 1,
                         "path_a", "path_b", "minx", "miny", "maxx", "maxy", "crs"])
             w.writerow(["p0", "r000_c000", "PA1", "PA2", "", "", "tiles/PA1/r000_c000.tif",
                         "tiles/PA2/r000_c000.tif", 0, 0, 1, 1, "EPSG:32756"])
-        with _stage_timer() as stages:
+        with _stage_timer() as stages, _phase_timer() as phases:
             t0, c0 = time.perf_counter(), time.process_time()
             s = run_augment(d / "pairs.csv", load_pipeline(), n=n,
                             out_dir=Path(tmp) / "aug", seed=seed, **_compress_kw(compress))
@@ -203,10 +203,85 @@ def _end_to_end(size: int, n: int, a: AugImage, b: AugImage, seed: int = 1,
         image_mb = sum(f.stat().st_size for f in sizes) / len(sizes) / 1e6
     per_pair = {k: round(v / n, 4) for k, v in stages.items()}
     per_pair["other"] = round(cpu / n - sum(per_pair.values()), 4)
+    by_phase = {k: round(v / n, 4) for k, v in phases.items()}
+    by_phase["rest_of_pipeline_and_command"] = round(cpu / n - sum(by_phase.values()), 4)
     return {"pairs": n, "seconds": round(dt, 3), "pairs_per_second": round(n / dt, 3),
             "seconds_per_pair": round(dt / n, 4), "cpu_seconds_per_pair": round(cpu / n, 4),
-            "cpu_seconds_per_pair_by_stage": per_pair, "image_mb": round(image_mb, 2),
+            "cpu_seconds_per_pair_by_stage": per_pair,
+            "cpu_seconds_per_pair_by_phase": by_phase, "image_mb": round(image_mb, 2),
             "compress": compress, "boxes_out": s["boxes_out"]}
+
+
+#: ``--phases``: what each phase of the whole command wraps, ``(module, attribute)``; every
+#: call site looks the name up there at call time. Time is exclusive: a wrapped call made
+#: inside another counts for its own phase only.
+PHASES = {
+    "read_decode": [("geosim.augment.runner", "read_tile"), ("geosim.augment.runner",
+                                                             "read_yolo")],
+    "warp_field": [("geosim.augment.functions", "smooth_field")],
+    "geometric_resample": [("geosim.augment.pipeline", "affine_resample_hwc"),
+                           ("geosim.augment.pipeline", "remap_resample_hwc"),
+                           ("geosim.augment.pipeline", "permute_exact")],
+    "mask_zeroing": [("geosim.augment.pipeline", "zero_invalid"),
+                     ("geosim.augment.resample", "zero_invalid")],
+    "photometric_colour_hsv": [("geosim.augment.photometric", "colour_shift"),
+                               ("geosim.augment.photometric", "hsv_shift"),
+                               ("geosim.augment.photometric", "colour_lut"),
+                               ("geosim.augment.pipeline", "_photometric_stage")],
+    "noise": [("geosim.augment.photometric", "add_noise")],
+    "boxes": [("geosim.augment.geometry.BoxTrack", "map_points"),
+              ("geosim.augment.geometry.BoxTrack", "to_boxes"),
+              ("geosim.augment.geometry.BoxTrack", "from_boxes")],
+    "encode_write": [("geosim.augment.runner", "write_image")],
+    "bookkeeping_files": [("geosim.augment.runner", "write_yolo"),
+                          ("geosim.augment.runner", "write_json"),
+                          ("geosim.augment.runner", "write_csv")],
+}
+
+
+@contextlib.contextmanager
+def _phase_timer():  # type: ignore[no-untyped-def]
+    """Exclusive CPU seconds by phase (:data:`PHASES`) of whatever runs inside."""
+    import importlib
+
+    spent = dict.fromkeys(PHASES, 0.0)
+    stack: list[list[float]] = []  # [start, child seconds] of the open wrapped calls
+    saved = []
+
+    def wrap(phase: str, func, static: bool):  # type: ignore[no-untyped-def]
+        def timed(*args, **kwargs):  # type: ignore[no-untyped-def]
+            stack.append([time.process_time(), 0.0])
+            try:
+                return func(*args, **kwargs)
+            finally:
+                start, child = stack.pop()
+                total = time.process_time() - start
+                spent[phase] += total - child
+                if stack:
+                    stack[-1][1] += total
+        return staticmethod(timed) if static else timed
+
+    for phase, targets in PHASES.items():
+        for owner_name, attr in targets:
+            mod_name, _, cls = owner_name.partition(".geometry.")
+            owner = (getattr(importlib.import_module("geosim.augment.geometry"), cls)
+                     if cls else importlib.import_module(owner_name))
+            raw = owner.__dict__.get(attr)
+            if raw is None:  # not in this revision
+                continue
+            static = isinstance(raw, classmethod | staticmethod)
+            func = raw.__func__ if static else raw
+            if isinstance(raw, classmethod):
+                wrapped = classmethod(wrap(phase, func, False))
+            else:
+                wrapped = wrap(phase, func, static)
+            saved.append((owner, attr, raw))
+            setattr(owner, attr, wrapped)
+    try:
+        yield spent
+    finally:
+        for owner, attr, raw in saved:
+            setattr(owner, attr, raw)
 
 
 def _compress_kw(compress: str | None) -> dict:
@@ -399,8 +474,14 @@ def _main_end_to_end(args: argparse.Namespace) -> None:
         stages = {k: round(sum(r["cpu_seconds_per_pair_by_stage"][k] * r["pairs"]
                                for r in runs) / pairs, 3)
                   for k in runs[0]["cpu_seconds_per_pair_by_stage"]}
+        phases = {k: round(sum(r["cpu_seconds_per_pair_by_phase"][k] * r["pairs"]
+                               for r in runs) / pairs, 3)
+                  for k in runs[0].get("cpu_seconds_per_pair_by_phase", {})}
         res["summary"][label] = {
             "pairs": pairs, "cpu_seconds_per_pair": round(cpu / pairs, 3),
+            "cpu_seconds_per_pair_by_phase": phases,
+            "cpu_seconds_per_pair_median_of_runs": round(float(np.median(
+                [r["cpu_seconds_per_pair"] for r in runs])), 3),
             "cpu_pairs_per_second": round(pairs / cpu, 3),
             "wall_pairs_per_second": round(pairs / wall, 3),
             "cpu_seconds_per_pair_by_stage": stages,
@@ -420,6 +501,12 @@ def _main_end_to_end(args: argparse.Namespace) -> None:
         print(f"| {name} | {r['pairs']} | {r['cpu_seconds_per_pair']} | {st} | "
               f"{r['cpu_pairs_per_second']} | {r['wall_pairs_per_second']} | "
               f"{r['image_mb']} | {', '.join(map(str, r['load_average']))} |")
+    phase_names = list(PHASES) + ["rest_of_pipeline_and_command"]
+    print(f"\n| CPU s per pair by phase | {' | '.join(phase_names)} |")
+    print("|---" * (1 + len(phase_names)) + "|")
+    for label, r in res["summary"].items():
+        ph = r["cpu_seconds_per_pair_by_phase"]
+        print(f"| {label} | {' | '.join(str(ph.get(k, '')) for k in phase_names)} |")
     print(f"results in {out_path}")
 
 

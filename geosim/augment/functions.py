@@ -100,12 +100,20 @@ class PixelOp:
     hsv
         ``(hue_deg, saturation_dn, value_dn)`` for HSV shifts, so that consecutive
         HSV shifts of different channels share one colour-space round trip.
+    colour_dn
+        ``(r, g, b)`` shifts (8-bit DN) of a colour shift, so that the pipeline can
+        apply it as a look-up table (the same values as ``func``).
+    noise_sigma_dn
+        Standard deviation (8-bit DN) of a noise op, so that the pipeline can add the
+        noise and round to the image dtype in one pass (the same values as ``func``).
     """
 
     name: str
     func: Callable[[np.ndarray, float, np.random.Generator | None], np.ndarray]
     seed: int | None = None
     hsv: tuple[float, float, float] | None = None
+    colour_dn: tuple[float, float, float] | None = None
+    noise_sigma_dn: float | None = None
 
 
 def hsv_op(name: str, hue_deg: float = 0.0, saturation_dn: float = 0.0,
@@ -488,7 +496,8 @@ class Colour(_Photometric):
         if not shifts.any():
             return None
         return PixelOp(self.name,
-                       lambda w, dn_max, _rng: photo.colour_shift(w, shifts, dn_max=dn_max))
+                       lambda w, dn_max, _rng: photo.colour_shift(w, shifts, dn_max=dn_max),
+                       colour_dn=(float(shifts[0]), float(shifts[1]), float(shifts[2])))
 
 
 @dataclass(frozen=True)
@@ -577,7 +586,8 @@ class Noise(_Photometric):
         if sigma == 0:
             return None
         return PixelOp(self.name, lambda w, dn_max, rng: photo.add_noise(
-            w, sigma_dn=sigma, rng=rng, dn_max=dn_max), seed=int(seed))
+            w, sigma_dn=sigma, rng=rng, dn_max=dn_max), seed=int(seed),
+            noise_sigma_dn=float(sigma))
 
 
 #: The functions by config name, in the paper's table order.

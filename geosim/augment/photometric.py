@@ -25,7 +25,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["add_noise", "colour_shift", "dn_max_for", "hsv_shift", "from_work", "to_work"]
+__all__ = ["add_noise", "colour_lut", "colour_shift", "dn_max_for", "hsv_shift", "from_work",
+           "saturates_to_range", "to_work"]
 
 #: Largest 31-bit seed handed to OpenCV's generator.
 _CV_SEED_MAX = 2**31 - 1
@@ -76,6 +77,26 @@ def from_work(work: np.ndarray, dtype: np.dtype | type, *, out: np.ndarray | Non
     return out
 
 
+def saturates_to_range(dtype: np.dtype | type) -> bool:
+    """Whether OpenCV's saturating conversion to ``dtype`` clips to ``[0, dn_max_for(dtype)]``.
+
+    True for uint8 and uint16: a final clip to the full scale before :func:`from_work`
+    changes nothing there (clip-then-round equals round-then-saturate), so it is skipped.
+    """
+    return np.dtype(dtype) in (np.dtype(np.uint8), np.dtype(np.uint16))
+
+
+def colour_lut(shifts_dn: np.ndarray, bands: int, *, dn_max: float = 255.0) -> np.ndarray:
+    """:func:`colour_shift` of every uint8 value as a float32 look-up table for ``cv2.LUT``.
+
+    Returns a ``(1, 256, bands)`` float32 table: ``cv2.LUT(block, table)`` equals
+    ``colour_shift(to_work(block), shifts_dn)`` exactly (the table *is* that kernel run
+    on the 256 values), in one pass instead of three (convert, add, clip).
+    """
+    ramp = np.repeat(np.arange(256, dtype=np.float32)[:, np.newaxis], bands, axis=1)
+    return colour_shift(ramp.reshape(1, 256, bands), shifts_dn, dn_max=dn_max)
+
+
 def _rgb_count(work: np.ndarray) -> int:
     return min(3, work.shape[-1])
 
@@ -105,7 +126,8 @@ def colour_shift(work: np.ndarray, shifts_dn: np.ndarray, *, dn_max: float = 255
 
 
 def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 0.0,
-              value_dn: float = 0.0, dn_max: float = 255.0) -> np.ndarray:
+              value_dn: float = 0.0, dn_max: float = 255.0, clip_input: bool = True,
+              clip_output: bool = True) -> np.ndarray:
     """Shift hue (cyclically), saturation and value of the R, G, B bands.
 
     One float32 RGB → HSV → RGB round trip (OpenCV) for any combination of the
@@ -122,13 +144,20 @@ def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 
         Saturation and value shifts in 8-bit units (1/255 of full scale).
     dn_max
         Full-scale value of the image, DN.
+    clip_input, clip_output
+        Clip the input / the result to ``[0, dn_max]``. The pipeline skips the input
+        clip when the block is already in range (every kernel's result and every
+        uint8/uint16 block is) and the output clip when the next step is a saturating
+        conversion (:func:`saturates_to_range`): the values are the same, two passes fewer.
     """
     if work.shape[-1] < 3:
         out = work + np.float32(value_dn * dn_max / 255.0)
         return np.clip(out, 0.0, dn_max, out=out)
     # OpenCV's float RGB -> HSV is scale-free: V comes out in the input's DN, S in [0, 1],
     # H in degrees, so the image is not rescaled to [0, 1] and back (two passes fewer)
-    rgb = np.clip(work[..., :3], 0.0, dn_max)        # a new (rows, cols, 3) array
+    rgb = work[..., :3]
+    if clip_input:
+        rgb = np.clip(rgb, 0.0, dn_max)              # a new (rows, cols, 3) array
     hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)       # H in [0, 360), S in [0, 1], V in DN
     # H + (hue mod 360) lies in [0, 720): OpenCV's float HSV → RGB takes the hue
     # modulo 360 (tested), so the shift is cyclic without a wrap pass.
@@ -137,7 +166,8 @@ def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 
     cv2.min(hsv, (720.0, 1.0, dn_max, 0.0), dst=hsv)  # clip S and V
     cv2.max(hsv, (0.0, 0.0, 0.0, 0.0), dst=hsv)
     back = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
-    np.clip(back, 0.0, dn_max, out=back)
+    if clip_output:
+        np.clip(back, 0.0, dn_max, out=back)
     if work.shape[-1] == 3:
         return back
     out = work.copy()
@@ -146,7 +176,7 @@ def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 
 
 
 def add_noise(work: np.ndarray, *, sigma_dn: float, rng: np.random.Generator,
-              dn_max: float = 255.0) -> np.ndarray:
+              dn_max: float = 255.0, out: np.ndarray | None = None) -> np.ndarray:
     """Add zero-mean Gaussian noise, independent for every pixel and band.
 
     The normals come from OpenCV's generator (:func:`cv2.randn`, 4–5× faster than
@@ -165,6 +195,10 @@ def add_noise(work: np.ndarray, *, sigma_dn: float, rng: np.random.Generator,
         Source of the noise (its next draw seeds OpenCV's generator).
     dn_max
         Full-scale value of the image, DN.
+    out
+        Optional uint8/uint16 array of ``work``'s shape (:func:`saturates_to_range`):
+        the noisy image is added, rounded and saturated straight into it, one OpenCV pass
+        instead of add, clip and :func:`from_work` (the same values), and returned.
     """
     noise = np.empty(work.shape, np.float32)
     flat = noise.reshape(noise.shape[0], -1)  # one channel: any number of bands
@@ -177,5 +211,11 @@ def add_noise(work: np.ndarray, *, sigma_dn: float, rng: np.random.Generator,
         noise *= np.float32(dn_max / 255.0)
     else:
         cv2.randn(flat, 0.0, float(sigma_dn * dn_max / 255.0))
+    if out is not None:
+        if not saturates_to_range(out.dtype) or out.shape != work.shape:
+            raise ValueError(f"out must be uint8 or uint16 of shape {work.shape}")
+        src = np.ascontiguousarray(work, dtype=np.float32).reshape(flat.shape)
+        cv2.add(src, flat, dst=out.reshape(flat.shape), dtype=_CV_DEPTH[out.dtype])
+        return out
     noise += work
     return np.clip(noise, 0.0, dn_max, out=noise)

@@ -41,6 +41,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from geosim.augment import photometric as photo
@@ -465,18 +466,52 @@ def _photometric_stage(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp]
     consumed block after block in a fixed order, so the result does not depend on
     anything but the seeds. Invalid pixels are set to 0. Returns a new interleaved
     array.
+
+    Passes that cannot change a value are skipped (the result is the same, bit for
+    bit, as running every kernel in full; tested): a leading colour shift of a uint8
+    image is its float32 look-up table, applied while converting (one ``cv2.LUT``
+    instead of convert, add and clip; a colour shift alone is a uint8 table); an HSV
+    shift does not re-clip a block that is already in range; the last op does not clip
+    before a saturating conversion to uint8/uint16, and trailing noise is added, rounded
+    and saturated into the output in one pass.
     """
     ops = _merge_hsv(ops)
+    dtype = hwc.dtype
+    bands = hwc.shape[-1]
+    lut = None
+    if ops[0].colour_dn is not None and dtype == np.uint8 and 2 <= bands <= 4:
+        lut = photo.colour_lut(np.asarray(ops[0].colour_dn), bands, dn_max=dn_max)
+        ops = ops[1:]
+        if not ops:  # a colour shift alone: the rounded table, uint8 to uint8
+            out = cv2.LUT(hwc, photo.from_work(lut, np.uint8))
+            return zero_invalid(out, mask)
     rngs = [np.random.default_rng(op.seed) if op.seed is not None else None for op in ops]
+    saturating = photo.saturates_to_range(dtype)
     rows = hwc.shape[0]
-    out = np.empty(hwc.shape, hwc.dtype)
+    out = np.empty(hwc.shape, dtype)
     for r0 in range(0, rows, BLOCK_ROWS):
         block = slice(r0, min(rows, r0 + BLOCK_ROWS))
-        work = photo.to_work(hwc[block])
-        for op, rng in zip(ops, rngs, strict=True):
-            work = op.func(work, dn_max, rng)
-        photo.from_work(work, hwc.dtype, out=out[block])
-    return zero_invalid(out, mask)
+        work = cv2.LUT(hwc[block], lut) if lut is not None else photo.to_work(hwc[block])
+        in_range = saturating or lut is not None  # every kernel's result is clipped too
+        written = False
+        for i, (op, rng) in enumerate(zip(ops, rngs, strict=True)):
+            last = i == len(ops) - 1
+            if last and saturating and op.noise_sigma_dn is not None:
+                photo.add_noise(work, sigma_dn=op.noise_sigma_dn, rng=rng, dn_max=dn_max,
+                                out=out[block])
+                written = True
+            elif op.hsv is not None:
+                h, s, v = op.hsv
+                work = photo.hsv_shift(work, hue_deg=h, saturation_dn=s, value_dn=v,
+                                       dn_max=dn_max, clip_input=not in_range,
+                                       clip_output=not (last and saturating))
+            else:
+                work = op.func(work, dn_max, rng)
+            in_range = True
+        if not written:
+            photo.from_work(work, dtype, out=out[block])
+        zero_invalid(out[block], mask[block])  # while the block is in cache
+    return out
 
 
 def flatten_records(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
