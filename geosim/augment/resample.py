@@ -258,6 +258,9 @@ def remap_resample_hwc(hwc: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px
     inv = None if matrix is None or is_identity(matrix) else to_cv2_inverse(matrix)
     out = np.empty_like(hwc)
     out_mask = np.empty_like(mask)
+    # An all-valid mask remapped with nearest neighbour is 1 exactly where the rounded
+    # source position is inside the image: one range test instead of a remap.
+    inside_src = _nearest_inside_bounds(rows, cols) if mask.all() else None
     # (col, row) of every output pixel of a block of rows, one 2-channel float32 array
     # (OpenCV's point-map layout); the row channel is moved down block by block
     grid = np.empty((min(rows, REMAP_BLOCK_ROWS), cols, 2), np.float32)
@@ -280,12 +283,31 @@ def remap_resample_hwc(hwc: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px
             xy = cv2.transform(xy, inv)
         # remapped straight into the output rows (no block copy)
         block_mask = out_mask[r0:r1].view(np.uint8)
-        cv2.remap(mask.view(np.uint8), xy, None, cv2.INTER_NEAREST, dst=block_mask,
-                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        if inside_src is not None:
+            cv2.bitwise_and(cv2.inRange(xy, *inside_src), 1, dst=block_mask)  # 0 / 1
+        else:
+            cv2.remap(mask.view(np.uint8), xy, None, cv2.INTER_NEAREST, dst=block_mask,
+                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if inside is not None:
             cv2.bitwise_and(block_mask, inside, dst=block_mask)  # (0 / 1) & (0 / 255)
         _remap_into(hwc, xy, out[r0:r1], INTERPOLATION[interpolation])
     return zero_invalid(out, out_mask), out_mask
+
+
+def _nearest_inside_bounds(rows: int, cols: int
+                           ) -> tuple[tuple[float, float], tuple[float, float]]:
+    """``cv2.inRange`` bounds of the float (x, y) positions that nearest-neighbour remap
+    reads from inside a ``rows`` × ``cols`` image.
+
+    OpenCV rounds a float map position to the nearest index, ties to even (tested):
+    ``-0.5`` reads index 0, and ``n - 0.5`` reads index ``n - 1`` when ``n`` is odd but
+    ``n`` (outside) when ``n`` is even, so the upper bound is then the float32 just below.
+    """
+    def upper(n: int) -> float:
+        hi = np.float32(n - 0.5)
+        return float(hi if n % 2 else np.nextafter(hi, np.float32(-np.inf)))
+
+    return (-0.5, -0.5), (upper(cols), upper(rows))
 
 
 def _remap_into(hwc: np.ndarray, xy: np.ndarray, dst: np.ndarray, flag: int) -> None:
