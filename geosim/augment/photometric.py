@@ -163,8 +163,12 @@ def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 
     # modulo 360 (tested), so the shift is cyclic without a wrap pass.
     cv2.add(hsv, (float(hue_deg % 360.0), saturation_dn / 255.0, value_dn * dn_max / 255.0,
                   0.0), dst=hsv)
-    cv2.min(hsv, (720.0, 1.0, dn_max, 0.0), dst=hsv)  # clip S and V
-    cv2.max(hsv, (0.0, 0.0, 0.0, 0.0), dst=hsv)
+    # clip S and V: only on the side a shift moves them to (H, S and V of an in-range
+    # block are in [0, 360), [0, 1] and [0, dn_max]; a clip on the other side is a no-op)
+    if saturation_dn > 0 or value_dn > 0:
+        cv2.min(hsv, (720.0, 1.0, dn_max, 0.0), dst=hsv)
+    if saturation_dn < 0 or value_dn < 0:
+        cv2.max(hsv, (0.0, 0.0, 0.0, 0.0), dst=hsv)
     back = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
     if clip_output:
         np.clip(back, 0.0, dn_max, out=back)

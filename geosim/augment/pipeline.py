@@ -380,13 +380,16 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
         if not interleaved:
             hwc, interleaved = interleave(hwc), True
 
-    def flush_affine() -> None:
+    def flush_affine(pixel_stage_next: bool = False) -> None:
         nonlocal hwc, mask, track, affine, affine_names
         if affine_names and not is_identity(affine):
             exact = permute_exact(hwc, mask, affine, bands_last=interleaved)
             if exact is None:
                 to_interleaved()
-                exact = affine_resample_hwc(hwc, mask, affine, interpolation=interpolation)
+                # a photometric stage next zeroes invalid pixels itself (its ops are
+                # pixel-wise: what lies under the mask never reaches a valid pixel)
+                exact = affine_resample_hwc(hwc, mask, affine, interpolation=interpolation,
+                                            zero=not pixel_stage_next)
             hwc, mask = exact
             track = track.affine(affine, shape)
             chain.append({"kind": "affine", "functions": affine_names,
@@ -401,7 +404,7 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
             chain.append({"kind": "photometric", "functions": [n for n, _ in pixel_ops]})
         pixel_ops = []
 
-    for name, op in ops:
+    for i, (name, op) in enumerate(ops):
         if isinstance(op, AffineOp):
             flush_pixel()
             affine = op.matrix @ affine
@@ -417,14 +420,16 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
                               "matrix_px": pending.tolist(), "resampled_with_next_warp": True})
             affine, affine_names = np.eye(3), []
             to_interleaved()
+            pixel_next = i + 1 < len(ops) and isinstance(ops[i + 1][1], PixelOp)
             hwc, mask = remap_resample_hwc(hwc, mask, f.u_px, f.v_px,
-                                           interpolation=interpolation, matrix=pending)
+                                           interpolation=interpolation, matrix=pending,
+                                           zero=not pixel_next)
             track = track.map_points(f.forward_points, shape, densify_px=DENSIFY_PX)
             chain.append({"kind": "warp", "functions": [name],
                           "max_px": f.max_px,
                           "max_gradient": f.max_gradient})
         else:
-            flush_affine()
+            flush_affine(pixel_stage_next=True)
             pixel_ops.append((name, op))
     flush_affine()
     flush_pixel()

@@ -133,8 +133,13 @@ def affine_resample(image: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *,
 
 
 def affine_resample_hwc(hwc: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *,
-                        interpolation: str = "cubic") -> tuple[np.ndarray, np.ndarray]:
-    """:func:`affine_resample` of an interleaved ``(rows, cols, bands)`` image (new arrays)."""
+                        interpolation: str = "cubic", zero: bool = True
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`affine_resample` of an interleaved ``(rows, cols, bands)`` image (new arrays).
+
+    ``zero=False`` leaves the interpolated pixels where the mask is False as they are
+    (not 0), for a caller whose next, pixel-wise stage zeroes them (one pass fewer).
+    """
     if is_identity(matrix):
         return hwc.copy(), mask.copy()
     exact = permute_exact(hwc, mask, matrix, bands_last=True)
@@ -148,7 +153,7 @@ def affine_resample_hwc(hwc: np.ndarray, mask: np.ndarray, matrix: np.ndarray, *
     out_mask = cv2.warpAffine(mask.view(np.uint8), inv, (cols, rows),
                               flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
-    return zero_invalid(out, out_mask), out_mask
+    return (zero_invalid(out, out_mask) if zero else out), out_mask
 
 
 def _axis_slices(sign: int, offset: int, n_out: int, n_src: int) -> tuple[slice, slice] | None:
@@ -249,9 +254,12 @@ def remap_resample(image: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px: 
 
 
 def remap_resample_hwc(hwc: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px: np.ndarray,
-                       *, interpolation: str = "cubic", matrix: np.ndarray | None = None
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`remap_resample` of an interleaved ``(rows, cols, bands)`` image (new arrays)."""
+                       *, interpolation: str = "cubic", matrix: np.ndarray | None = None,
+                       zero: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`remap_resample` of an interleaved ``(rows, cols, bands)`` image (new arrays).
+
+    ``zero``: as :func:`affine_resample_hwc`.
+    """
     rows, cols = mask.shape
     if u_px.shape != (rows, cols) or v_px.shape != (rows, cols):
         raise ValueError(f"field shape {u_px.shape}/{v_px.shape} != image {(rows, cols)}")
@@ -291,7 +299,7 @@ def remap_resample_hwc(hwc: np.ndarray, mask: np.ndarray, u_px: np.ndarray, v_px
         if inside is not None:
             cv2.bitwise_and(block_mask, inside, dst=block_mask)  # (0 / 1) & (0 / 255)
         _remap_into(hwc, xy, out[r0:r1], INTERPOLATION[interpolation])
-    return zero_invalid(out, out_mask), out_mask
+    return (zero_invalid(out, out_mask) if zero else out), out_mask
 
 
 def _nearest_inside_bounds(rows: int, cols: int

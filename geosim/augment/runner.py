@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from geosim.augment.allocator import keep_freed_memory
 from geosim.augment.geometry import Boxes
 from geosim.augment.io import (
     TIFF_COMPRESSION,
@@ -114,6 +115,7 @@ class AugmentPairDone:
 
 def augment_pair_task(task: AugmentPairTask) -> AugmentPairDone:
     """Augment one pair ``n`` times and write its images, labels and metadata."""
+    keep_freed_memory()  # large arrays reused from one output to the next (allocator.py)
     row, pipeline, seed = task.row, task.pipeline, task.seed
     tile_a, tile_b, found = _load(task.run_dir, row, task.resolution)
     counts = {"boxes_in": 0, "boxes_out": 0, "boxes_dropped": 0,
