@@ -10,6 +10,11 @@ arrays come from the heap and a freed one is reused, already mapped, by the next
 (``sys`` 0.06–0.07 s, 1000 faults per pair) at the same peak resident memory (841 vs
 845 MB over 10 pairs): the heap keeps its peak, which the next output needs anyway.
 
+:func:`geosim.heap.keep_freed_heap` (which every engine applies before its tasks) raises
+glibc's mmap and trim thresholds for GDAL's small blocks but cannot help arrays above
+glibc's 32 MB mmap cap; this goes further for the augmentation's tasks, and applies that
+function first so that its later first call cannot lower the trim threshold again.
+
 Only the main arena obeys this: tasks run by a thread other than the process's first
 (a Dask worker's executor thread) get their large arrays from ``mmap`` whatever is set
 here, unless the process was started with ``MALLOC_ARENA_MAX=1`` in its environment.
@@ -20,6 +25,8 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import sys
+
+from geosim.heap import keep_freed_heap
 
 __all__ = ["keep_freed_memory"]
 
@@ -47,6 +54,7 @@ def keep_freed_memory() -> bool:
         return True
     if not sys.platform.startswith("linux"):
         return False
+    keep_freed_heap()  # its one-time settings first: it must not undo these later
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         mallopt = libc.mallopt
