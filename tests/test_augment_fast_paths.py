@@ -181,9 +181,9 @@ def test_remap_of_an_all_valid_mask_matches_a_mask_that_is_not() -> None:
 _FAULTS = textwrap.dedent("""
     import resource, sys
     import numpy as np
-    from geosim.augment.allocator import keep_freed_memory
+    from geosim.heap import keep_large_arrays
     if sys.argv[1] == "keep":
-        assert keep_freed_memory() and keep_freed_memory()
+        assert keep_large_arrays() and keep_large_arrays()
     def faults():
         return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     np.ones(64 * 2**20, np.uint8)  # 64 MB, freed
@@ -196,7 +196,7 @@ _FAULTS = textwrap.dedent("""
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt only")
-def test_keep_freed_memory_reuses_large_arrays_without_page_faults() -> None:
+def test_keep_large_arrays_reuses_large_arrays_without_page_faults() -> None:
     def per_alloc(mode: str) -> float:
         done = subprocess.run([sys.executable, "-c", _FAULTS, mode], check=True,
                               capture_output=True, text=True)

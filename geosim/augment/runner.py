@@ -29,7 +29,6 @@ from typing import Any
 
 import numpy as np
 
-from geosim.augment.allocator import keep_freed_memory
 from geosim.augment.geometry import Boxes
 from geosim.augment.io import (
     TIFF_COMPRESSION,
@@ -46,6 +45,7 @@ from geosim.augment.io import (
 from geosim.augment.pipeline import AugImage, AugmentResult, Pipeline, flatten_records
 from geosim.engine import parallel_map
 from geosim.errors import OutputError, RasterError
+from geosim.heap import keep_large_arrays
 from geosim.io.atomic import json_default, write_json, write_text
 from geosim.io.paths import safe_name
 from geosim.io.raster import provenance_tags
@@ -115,7 +115,7 @@ class AugmentPairDone:
 
 def augment_pair_task(task: AugmentPairTask) -> AugmentPairDone:
     """Augment one pair ``n`` times and write its images, labels and metadata."""
-    keep_freed_memory()  # large arrays reused from one output to the next (allocator.py)
+    keep_large_arrays()  # large arrays reused from one output to the next (geosim/heap.py)
     row, pipeline, seed = task.row, task.pipeline, task.seed
     tile_a, tile_b, found = _load(task.run_dir, row, task.resolution)
     counts = {"boxes_in": 0, "boxes_out": 0, "boxes_dropped": 0,
