@@ -34,6 +34,7 @@ from geosim.diagnose.fit import (
     fit_radiometry,
     fit_transfer,
 )
+from geosim.diagnose.jpeg_transfer import JpegTransfer, jpeg_transfer
 from geosim.diagnose.model import (
     Claim,
     CompressionFit,
@@ -110,6 +111,8 @@ JPEG_STEP_MARGIN = 1.25
 JPEG_ISOTROPIC_SPECTRAL_GAIN = 0.9
 #: Q grid extension when the fitted Q is pinned at its upper end (factor, largest Q)
 Q_EXTEND = 1.5
+#: ratio of neighbouring Q values of the grid of exact simulations
+Q_GRID_STEP = 1.12
 Q_MAX = 6.0
 #: effects whose smooth isotropic roll-off the JPEG's high-frequency loss can imitate
 ISOTROPIC = ("detector_integration", "atmospheric_blur")
@@ -337,15 +340,18 @@ def _joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel
     quality on the refined (blurred) model, redo the blur selection with it, until the
     quality moves by less than :data:`JPEG_QUALITY_TOL` (at most :data:`JPEG_MAX_ROUNDS`)."""
     seen = {model.compression.quality} if model.compression is not None else set()
-    for _ in range(JPEG_MAX_ROUNDS):
+    for k in range(JPEG_MAX_ROUNDS):
         c = model.compression
         if c is None:
             break
         ref = _band_affine(model.without(compression=None, seam=None).blurred(inp.simulate),
                            inp.real, inp.valid)
         qual = _match_quality(inp, ref, c.offset_px, fine_step=1)
-        if abs(qual - c.quality) < JPEG_QUALITY_TOL or qual > MAX_CLAIMED_QUALITY \
-                or qual in seen:
+        if qual > MAX_CLAIMED_QUALITY:
+            break
+        # the first round always reselects: the JPEG's transfer is then linearised around
+        # the blurred model, not the sharp baseline (:mod:`geosim.diagnose.jpeg_transfer`)
+        if k > 0 and (abs(qual - c.quality) < JPEG_QUALITY_TOL or qual in seen):
             break
         seen.add(qual)
         model, setup, sel = _reselect_at_quality(inp, model, qual, fit_mask, q_lo, q_hi,
@@ -363,13 +369,29 @@ def _reselect_at_quality(inp: Inputs, model: ForwardModel, quality: int, fit_mas
                          q_starts: tuple[float, float]
                          ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
     """The blur selection redone from the baseline Q with the JPEG at ``quality`` (same
-    block offset and test); the model adopts the new selection."""
+    block offset and test), the JPEG's transfer linearised around ``model`` (its Q and
+    blur); the model adopts the new selection."""
     c = model.compression
     assert c is not None
-    start = model.without(compression=CompressionFit(quality, c.offset_px, c.test),
-                          q=inp.q_base, blur={})
-    setup, sel = _select(inp, start, fit_mask, q_lo, q_hi, candidates, q_starts)
+    comp = CompressionFit(quality, c.offset_px, c.test)
+    jpeg = _jpeg_linearised(inp, model.without(compression=comp), fit_mask)
+    start = model.without(compression=comp, q=inp.q_base, blur={})
+    setup, sel = _select(inp, start, fit_mask, q_lo, q_hi, candidates, q_starts, jpeg)
     return _adopt(start, sel), setup, sel
+
+
+def _jpeg_linearised(inp: Inputs, ref: ForwardModel, fit_mask: np.ndarray
+                     ) -> JpegTransfer | None:
+    """The JPEG of ``ref.compression`` linearised around ``ref`` (blurred, matched to the
+    scene's radiometry): its coherent transfer on the scene's blocks."""
+    if ref.compression is None:
+        return None
+    img = _band_affine(ref.without(compression=None, seam=None).blurred(inp.simulate),
+                       inp.real, inp.valid)
+    origins = block_origins(inp.valid.shape, block_px=inp.block_px, valid=fit_mask)
+    if len(origins) < 4:
+        origins = block_origins(inp.valid.shape, block_px=inp.block_px, valid=inp.valid)
+    return jpeg_transfer(img, ref.compression.apply, origins, inp.block_px, _grey)
 
 
 def jpeg_step_scale(quality: int) -> float:
@@ -445,8 +467,8 @@ def _folds(origins: list[tuple[int, int]], block_px: int, shape: tuple[int, int]
 
 
 def _select(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float, q_hi: float,
-            candidates: tuple[str, ...], q_starts: tuple[float, float]
-            ) -> tuple[SpectralSetup, BlurSelection]:
+            candidates: tuple[str, ...], q_starts: tuple[float, float],
+            jpeg: JpegTransfer | None = None) -> tuple[SpectralSetup, BlurSelection]:
     """Q grid, Welch blocks and forward blur selection, with room for Q.
 
     The Q grid ends at ``q_hi`` (from the LV baseline, which noise and JPEG pull far from
@@ -454,9 +476,12 @@ def _select(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
     end, the scene is blurrier than the grid allows and an isotropic blur stands in for
     the missing optics; the grid is then extended (× :data:`Q_EXTEND`, up to
     :data:`Q_MAX`) and the selection redone. The grid is not widened otherwise: a wide
-    grid lets Q absorb real isotropic blurs (tried and reverted before)."""
+    grid lets Q absorb real isotropic blurs (tried and reverted before).
+
+    ``jpeg``: under compression, the JPEG's transfer linearised around the blurred model
+    (the simulations are filtered by it instead of being JPEG'd sharp)."""
     while True:
-        setup = _spectral_setup(inp, model, fit_mask, q_lo, q_hi)
+        setup = _spectral_setup(inp, model, fit_mask, q_lo, q_hi, jpeg)
         sel = select_blur(setup.full, setup.folds, candidates=candidates, q_starts=q_starts)
         top = setup.q_grid[-1] / 1.01
         if q_hi >= Q_MAX or not (sel.null.q >= top or sel.final.q >= top):
@@ -465,14 +490,19 @@ def _select(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
 
 
 def _spectral_setup(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
-                    q_hi: float) -> SpectralSetup:
-    """Exact simulations on a Q grid, screened Welch blocks, CV folds."""
+                    q_hi: float, jpeg: JpegTransfer | None = None) -> SpectralSetup:
+    """Exact simulations on a Q grid, screened Welch blocks, CV folds (under JPEG, with
+    ``jpeg`` given: the uncompressed simulations filtered by its linearised transfer)."""
     from geosim.errors import DiagnosisError
 
     rows, cols = inp.valid.shape
-    n_q = int(np.ceil(np.log(q_hi / q_lo) / np.log(1.12))) + 1
+    n_q = int(np.ceil(np.log(q_hi / q_lo) / np.log(Q_GRID_STEP))) + 1
     q_grid = np.exp(np.linspace(np.log(q_lo), np.log(q_hi), n_q))
-    sims_grey = [_grey(model.sim_at(inp.simulate, q)) for q in q_grid]
+    if jpeg is not None and model.compression is not None:
+        sims_grey = [jpeg.apply(_grey(model.sim_at(inp.simulate, q, compressed=False)))
+                     for q in q_grid]
+    else:
+        sims_grey = [_grey(model.sim_at(inp.simulate, q)) for q in q_grid]
     base_g = _grey(model.sim_at(inp.simulate, inp.q_base))
     block_px = inp.block_px
     while True:  # smaller Welch blocks when changes leave too few whole blocks
@@ -811,7 +841,8 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     if q_hi is None:
         q_hi = max(2.5, 1.3 * q_base)
     q_starts = (float(np.clip(q_base, q_lo, q_hi)), 1.5)
-    setup, sel = _select(inp, model, fit_mask, q_lo, q_hi, blur_candidates, q_starts)
+    setup, sel = _select(inp, model, fit_mask, q_lo, q_hi, blur_candidates, q_starts,
+                         _jpeg_linearised(inp, model, fit_mask))
     model = _adopt(model, sel)
     model, setup, sel = _joint_jpeg_blur(inp, model, setup, sel, fit_mask, q_lo, q_hi,
                                          blur_candidates, q_starts)
