@@ -310,14 +310,21 @@ class Case:
         return "validation" if self.seed >= VALIDATION_FIRST_SEED else "development"
 
 
-def draw_effects(rng: np.random.Generator, n_effects: int) -> dict[str, dict[str, Any]]:
-    """n_effects effects from distinct families with parameters from RANGES."""
-    fams = list(FAMILIES)
-    chosen = rng.choice(len(fams), size=n_effects, replace=False)
+def draw_effects(rng: np.random.Generator, n_effects: int,
+                 names: tuple[str, ...] | None = None) -> dict[str, dict[str, Any]]:
+    """n_effects effects from distinct families with parameters from RANGES (``names``:
+    exactly these effects instead, parameters still drawn from RANGES)."""
+    if names is None:
+        fams = list(FAMILIES)
+        chosen = rng.choice(len(fams), size=n_effects, replace=False)
+        picked = []
+        for i in chosen:
+            members = FAMILIES[fams[int(i)]]
+            picked.append(members[int(rng.integers(0, len(members)))])
+    else:
+        picked = list(names)
     out: dict[str, dict[str, Any]] = {}
-    for i in chosen:
-        members = FAMILIES[fams[int(i)]]
-        name = members[int(rng.integers(0, len(members)))]
+    for name in picked:
         r = RANGES[name]
 
         def u(key: str, r=r) -> float:
@@ -399,9 +406,12 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
 
 
 def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,
-              control_every: int = 5, base_seed: int = 1000) -> Case:
+              control_every: int = 5, base_seed: int = 1000,
+              force: tuple[str, ...] | None = None) -> Case:
     """Case ``i`` (seed base_seed + i): source round robin; every ``control_every``-th a
-    control (the paper's model only); else 1-3 effects."""
+    control (the paper's model only); else 1-3 effects. ``force``: exactly these effects
+    (random parameters), for extra development cases of one kind (seeds 6000-6999 for
+    blur effects; the seeds 1000-1127 are drawn without it)."""
     seed = base_seed + i
     rng = np.random.default_rng(seed)
     if sources:
@@ -421,7 +431,7 @@ def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: in
         name = "synthetic"
     q = float(rng.uniform(*Q_RANGE))
     n_eff = 0 if i % control_every == 0 else int(rng.integers(1, 4))
-    truth = draw_effects(rng, n_eff)
+    truth = draw_effects(rng, n_eff, names=force)
     uav, real = render(ground, q, truth, rng, margin_px=margin_px)
     return Case(name=f"c{i:02d}", seed=seed, source=name, q=q, truth=truth, uav=uav, real=real)
 
