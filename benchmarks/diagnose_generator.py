@@ -314,17 +314,17 @@ def draw_effects(rng: np.random.Generator, n_effects: int,
                  names: tuple[str, ...] | None = None) -> dict[str, dict[str, Any]]:
     """n_effects effects from distinct families with parameters from RANGES (``names``:
     exactly these effects instead, parameters still drawn from RANGES)."""
-    if names is None:
-        fams = list(FAMILIES)
-        chosen = rng.choice(len(fams), size=n_effects, replace=False)
-        picked = []
-        for i in chosen:
-            members = FAMILIES[fams[int(i)]]
-            picked.append(members[int(rng.integers(0, len(members)))])
-    else:
-        picked = list(names)
+    fams = list(FAMILIES)
+    # the draw order (family, member, parameters, in turn) fixes the seeds -> cases mapping
+    chosen = (rng.choice(len(fams), size=n_effects, replace=False) if names is None
+              else [None] * len(names))
     out: dict[str, dict[str, Any]] = {}
-    for name in picked:
+    for k, i in enumerate(chosen):
+        if names is None:
+            members = FAMILIES[fams[int(i)]]
+            name = members[int(rng.integers(0, len(members)))]
+        else:
+            name = names[k]
         r = RANGES[name]
 
         def u(key: str, r=r) -> float:

@@ -189,17 +189,29 @@ class ForwardModel:
         lsi = {n: p for n, p in self.blur.items() if n not in NON_LSI}
         rest = {n: p for n, p in self.blur.items() if n in NON_LSI}
         variant = getattr(simulate, "variant", None)
-        if not lsi or not callable(variant) or self.q < getattr(simulate, "q_min", 0.0):
+        native = getattr(simulate, "native", None)
+        resampled = "resampling" in rest and callable(native)
+        if (not lsi and not resampled) or not callable(variant) \
+                or self.q < getattr(simulate, "q_min", 0.0):
             return self.sim_at(simulate, compressed=False), self.blur
         reg = self.registration
         pre = reg.applied and reg.field_px is None and reg.presampled is not None
         key = tuple(sorted((n, tuple(sorted(p.items()))) for n, p in lsi.items()))
         tr = otf.compose(*[(lambda fy, fx, n=n, p=p: get_effect(n).transfer(fy, fx, **p))
-                           for n, p in lsi.items()])
-        v = variant(shift_px=reg.shift_px if pre else (0.0, 0.0), transfer=tr, key=key)
-        if v is None:
-            return self.sim_at(simulate, compressed=False), self.blur
-        s = np.asarray(v(self.q), float)
+                           for n, p in lsi.items()]) if lsi else None
+        shift = reg.shift_px if pre else (0.0, 0.0)
+        s = None
+        if resampled:
+            # resampling rendered from the fine grid (native sampling of the optics' image)
+            s = native(self.q, rest["resampling"]["native_pitch_px"], shift_px=shift,
+                       transfer=tr, key=key)
+            if s is not None:
+                rest = {n: p for n, p in rest.items() if n != "resampling"}
+        if s is None:
+            v = variant(shift_px=shift, transfer=tr, key=key) if lsi else None
+            if v is None:
+                return self.sim_at(simulate, compressed=False), self.blur
+            s = np.asarray(v(self.q), float)
         s = s[np.newaxis] if s.ndim == 2 else s
         if pre:
             s = s[:, reg.fill_idx[0], reg.fill_idx[1]] if reg.fill_idx is not None else s

@@ -8,9 +8,10 @@ downsampling: the project's one implementation,
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
-from geosim.degrade.core import SpectralDegrader, degrade_array
+from geosim.degrade.core import SpectralDegrader, blur, degrade_array
 from geosim.physics import otf
 from geosim.physics.geometry import fourier_shift
 from geosim.physics.otf import TransferFunction
@@ -54,6 +55,7 @@ class QSimulator:
         self._cache: dict[float, np.ndarray] = {}
         self._fast = SpectralDegrader(self.uav, phi=self.phi, q_min=self.q_min, valid=valid)
         self._variants: dict[object, QSimulator] = {}
+        self._native_fine: tuple[object, np.ndarray] | None = None
         if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
             self.uav = None
 
@@ -111,4 +113,42 @@ class QSimulator:
         if len(self._variants) >= VARIANT_CACHE:
             self._variants.pop(next(iter(self._variants)))
         self._variants[ck] = out
+        return out
+
+    def native(self, q: float, native_pitch_px: float, *,
+               shift_px: tuple[float, float] = (0.0, 0.0),
+               transfer: TransferFunction | None = None, key: object = None
+               ) -> np.ndarray | None:
+        """A product resampled from a coarser native sampling, rendered where it happens:
+        the UAV image (moved by ``shift_px`` and filtered by ``transfer``, satellite-grid
+        units, as in :meth:`variant`) through the optics of ``q`` on the fine grid, each
+        native detector averaging its area (``native_pitch_px`` product pixels), then
+        cubic convolution onto the product grid. Resampling the *sampled* simulation
+        instead misses the aliasing the native sampling makes of content above the
+        product Nyquist (Q ≲ 1.5). ``None`` when the simulator keeps no image or the
+        image has invalid pixels. Bands first, DN, float64."""
+        if self.uav is None or (self.valid is not None and not np.all(self.valid)):
+            return None
+        ck = (round(float(q), 4), round(float(shift_px[0]), 6), round(float(shift_px[1]), 6),
+              key)
+        if self._native_fine is None or self._native_fine[0] != ck:
+            img = np.asarray(self.uav, dtype=float)
+            img = img[np.newaxis] if img.ndim == 2 else img
+            if shift_px[0] != 0 or shift_px[1] != 0:
+                img = fourier_shift(img, (float(shift_px[0]) * self.phi,
+                                          float(shift_px[1]) * self.phi))
+            if transfer is not None:
+                phi = self.phi
+                img = otf.apply_transfer(img, lambda fy, fx: transfer(fy * phi, fx * phi))
+            # one Airy-blurred fine image kept (the pitch scans reuse it)
+            self._native_fine = (ck, blur(img, q=q, phi=self.phi).astype(np.float32))
+        fine = self._native_fine[1]
+        rows, cols = fine.shape[-2] // self.phi, fine.shape[-1] // self.phi
+        n_rows = max(2, int(round(rows / native_pitch_px)))
+        n_cols = max(2, int(round(cols / native_pitch_px)))
+        out = np.empty((fine.shape[0], rows, cols))
+        for i, band in enumerate(fine):
+            src = np.ascontiguousarray(band[:rows * self.phi, :cols * self.phi])
+            low = cv2.resize(src, (n_cols, n_rows), interpolation=cv2.INTER_AREA)
+            out[i] = cv2.resize(low, (cols, rows), interpolation=cv2.INTER_CUBIC)
         return out
