@@ -98,3 +98,34 @@ def test_exact_transfer_model_removes_the_window_bias():
     err_exact = abs(exact.effects["motion_smear"]["length_px"] - 2.6)
     assert err_exact < 0.15 * 2.6, exact.effects
     assert err_exact < err_fast, (fast.effects, exact.effects)
+
+
+def test_native_resampling_aliases_as_the_native_sampling_does():
+    """A sinusoid above the product Nyquist (0.60 cycles per product pixel) seen by a
+    native sampling of pitch ≈ 1.5 px folds to |0.60·p − 1| / p cycles per product pixel
+    (analytic aliasing of the native grid), not where resampling the already sampled
+    product would put it (0.60 → 0.40 on the product grid, then folded again by the
+    native grid). QSimulator.native renders from the fine grid, so the peak is at the
+    native alias."""
+    n_sat, phi = 128, gen.PHI
+    cycles = 77                                   # whole cycles over the fine window
+    x = np.arange(n_sat * phi)
+    row = 100.0 + 50.0 * np.cos(2 * np.pi * cycles * x / (n_sat * phi))
+    uav = np.repeat(row[None, None, :], n_sat * phi, axis=1).astype(np.float32)
+    sim = QSimulator(uav, phi=phi, q_min=0.5)
+    out = sim.native(0.6, 1.5)
+    n_nat = int(round(n_sat / 1.5))
+    pitch = n_sat / n_nat                         # native pitch actually rendered, px
+    f = cycles / n_sat                            # cycles per product pixel (0.60)
+    f_native = f * pitch                          # cycles per native sample (≈ 0.90)
+    alias = abs(f_native - round(f_native)) / pitch
+    w = np.hanning(n_sat)
+    spec = np.abs(np.fft.rfft((out[0].mean(axis=0) - out[0].mean()) * w))
+    peak = int(np.argmax(spec[1:])) + 1
+    assert abs(peak - alias * n_sat) <= 1.0, (peak, alias * n_sat)
+    # resampling the sampled product puts it elsewhere (a different fold)
+    f_prod = 1.0 - f                              # 0.40 after the product sampling
+    f2 = f_prod * pitch
+    wrong = abs(f2 - round(f2)) / pitch
+    assert abs(wrong - alias) * n_sat > 5
+    assert spec[peak] > 10 * np.median(spec[1:])
