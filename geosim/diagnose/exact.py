@@ -207,4 +207,3 @@ def duel(sims: ExactSimulations, full: ExactBlocks,
         gains = {n: float("nan") for n in fits}
     best = min(cv, key=cv.__getitem__)
     return DuelResult(fits=fits, cv=cv, gains=gains, best=best)
-
