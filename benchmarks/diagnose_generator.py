@@ -293,6 +293,11 @@ def luma(img: np.ndarray) -> np.ndarray:
 # validation cases, both seen while tuning); round 2's validation half is the odd seeds
 # 1065-1127, drawn only for the final report. Even seeds >= 1064 are kept for a later round.
 VALIDATION_FIRST_SEED = 1064
+#: development extension (tuning allowed): seeds 5000-5999, cases drawn with a forced
+#: effect set and Q range (targeted development cases; never validation)
+EXTENSION_SEEDS = (5000, 5999)
+
+
 @dataclass
 class Case:
     """One benchmark case: UAV image on the fine grid, real scene on the product grid."""
@@ -307,6 +312,8 @@ class Case:
 
     @property
     def split(self) -> str:
+        if EXTENSION_SEEDS[0] <= self.seed <= EXTENSION_SEEDS[1]:
+            return "extension"
         return "validation" if self.seed >= VALIDATION_FIRST_SEED else "development"
 
 
@@ -325,31 +332,46 @@ def draw_effects(rng: np.random.Generator, n_effects: int,
             name = members[int(rng.integers(0, len(members)))]
         else:
             name = names[k]
-        r = RANGES[name]
-
-        def u(key: str, r=r) -> float:
-            return float(rng.uniform(*r[key]))
-
-        if name == "haze":
-            tb, lb = u("transmission_blue"), u("path_radiance_blue_dn")
-            out[name] = {"transmission": [tb + 0.5 * (1 - tb), tb + 0.3 * (1 - tb), tb],
-                         "path_radiance_dn": [0.35 * lb, 0.6 * lb, lb]}
-        elif name == "colour_response":
-            d = u("gain_dev")
-            signs = rng.choice([-1.0, 1.0], 3)
-            out[name] = {"gain": [float(1 + s * d * rng.uniform(0.5, 1.0)) for s in signs]}
-            out[name]["gain"][int(rng.integers(0, 3))] = float(1 + signs[0] * d)
-        elif name == "misregistration":
-            m = u("shift_px")
-            a = rng.uniform(0, 2 * np.pi)
-            out[name] = {"shift_px": [float(m * np.cos(a)), float(m * np.sin(a))]}
-        elif name == "compression":
-            out[name] = {"quality": int(round(u("quality")))}
-        elif name == "scene_change":
-            out[name] = {"n_objects": int(round(u("n_objects")))}
-        else:
-            out[name] = {k: u(k) for k in r}
+        out[name] = draw_params(rng, name)
     return out
+
+
+def draw_named_effects(rng: np.random.Generator, names: tuple[str, ...]
+                       ) -> dict[str, dict[str, Any]]:
+    """The named effects (at most one per family), parameters drawn from RANGES."""
+    fam_of = {m: f for f, ms in FAMILIES.items() for m in ms}
+    fams = [fam_of[n] for n in names]
+    if len(set(fams)) != len(fams):
+        raise ValueError(f"effects {names}: at most one per family")
+    return {n: draw_params(rng, n) for n in names}
+
+
+def draw_params(rng: np.random.Generator, name: str) -> dict[str, Any]:
+    """Parameters of one effect drawn from RANGES (the draw order defines the cases: keep)."""
+    r = RANGES[name]
+
+    def u(key: str) -> float:
+        return float(rng.uniform(*r[key]))
+
+    if name == "haze":
+        tb, lb = u("transmission_blue"), u("path_radiance_blue_dn")
+        return {"transmission": [tb + 0.5 * (1 - tb), tb + 0.3 * (1 - tb), tb],
+                "path_radiance_dn": [0.35 * lb, 0.6 * lb, lb]}
+    if name == "colour_response":
+        d = u("gain_dev")
+        signs = rng.choice([-1.0, 1.0], 3)
+        gain = [float(1 + s * d * rng.uniform(0.5, 1.0)) for s in signs]
+        gain[int(rng.integers(0, 3))] = float(1 + signs[0] * d)
+        return {"gain": gain}
+    if name == "misregistration":
+        m = u("shift_px")
+        a = rng.uniform(0, 2 * np.pi)
+        return {"shift_px": [float(m * np.cos(a)), float(m * np.sin(a))]}
+    if name == "compression":
+        return {"quality": int(round(u("quality")))}
+    if name == "scene_change":
+        return {"n_objects": int(round(u("n_objects")))}
+    return {k: u(k) for k in r}
 
 
 def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
@@ -407,12 +429,23 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
 
 def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,
               control_every: int = 5, base_seed: int = 1000,
-              force: tuple[str, ...] | None = None) -> Case:
+              force: tuple[str, ...] | None = None,
+              effects: tuple[str, ...] | None = None,
+              q_range: tuple[float, float] | None = None) -> Case:
     """Case ``i`` (seed base_seed + i): source round robin; every ``control_every``-th a
     control (the paper's model only); else 1-3 effects. ``force``: exactly these effects
     (random parameters), for extra development cases of one kind (seeds 6000-6999 for
-    blur effects; the seeds 1000-1127 are drawn without it)."""
+    blur effects; the seeds 1000-1127 are drawn without it).
+
+    ``effects`` forces the effect set (parameters still drawn from RANGES, no effect count
+    drawn) and ``q_range`` the range Q is drawn from: only for the development extension
+    (seeds in EXTENSION_SEEDS, 5000-5999), so that the seed -> case mapping of the
+    benchmark halves stays."""
     seed = base_seed + i
+    forced = effects is not None or q_range is not None
+    if forced and not EXTENSION_SEEDS[0] <= seed <= EXTENSION_SEEDS[1]:
+        raise ValueError(f"seed {seed}: forced effects or Q range only for the development "
+                         f"extension seeds {EXTENSION_SEEDS[0]}-{EXTENSION_SEEDS[1]}")
     rng = np.random.default_rng(seed)
     if sources:
         src = sources[(i + i // len(sources)) % len(sources)]
@@ -429,11 +462,15 @@ def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: in
     else:
         ground = synthetic_ground(rng, (sat_px + 2 * margin_px) * PHI)
         name = "synthetic"
-    q = float(rng.uniform(*Q_RANGE))
-    n_eff = 0 if i % control_every == 0 else int(rng.integers(1, 4))
-    truth = draw_effects(rng, n_eff, names=force)
+    q = float(rng.uniform(*(q_range or Q_RANGE)))
+    if effects is None:
+        n_eff = 0 if i % control_every == 0 else int(rng.integers(1, 4))
+        truth = draw_effects(rng, n_eff, names=force)
+    else:
+        truth = draw_named_effects(rng, effects)
     uav, real = render(ground, q, truth, rng, margin_px=margin_px)
-    return Case(name=f"c{i:02d}", seed=seed, source=name, q=q, truth=truth, uav=uav, real=real)
+    label = f"x{seed}" if EXTENSION_SEEDS[0] <= seed <= EXTENSION_SEEDS[1] else f"c{i:02d}"
+    return Case(name=label, seed=seed, source=name, q=q, truth=truth, uav=uav, real=real)
 
 
 def pick_sources(all_sources: list[Source], n_sjer_each: int = 2) -> list[Source]:

@@ -11,8 +11,14 @@ odd seeds 1065-1127, run only for the final report. The diagnosis sees the
 UAV image and the scene, calibrates Q by Laplacian variance, and is scored by the
 benchmark's own measures (exact effect names; its own spectral error).
 
+Development extension (tuning allowed): seeds 5000-5999, cases with a forced effect set and
+Q range drawn from ``EXTENSION_RECIPES`` (case k: seed 5000 + k, recipe k mod its length),
+for failure kinds the development half holds few of. They never change the halves' cases.
+
 Run: python benchmarks/diagnose_independent.py [--cases N] [--only development|validation]
 (--cases N: the first N development cases; the validation half is always all 32.)
+     python benchmarks/diagnose_independent.py --extension noise [--extension-cases K]
+     --out /tmp/x.json   (the extension only)
 Writes benchmarks/results/diagnose_independent.json and prints markdown tables.
 """
 
@@ -23,6 +29,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +45,19 @@ REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata
 SAMPLES = ROOT / "data" / "samples"
 N_CASES = 64  # development cases; validation: odd i in 65..127
 N_VALIDATION_LAST = 127
+#: development extension recipes: (forced effects, Q range or None for the full range).
+#: "noise": sensor noise under JPEG and with moved objects at low Q (the validation
+#: half's largest group of misses), and the same without noise (false-claim checks).
+EXTENSION_RECIPES: dict[str, list[tuple[tuple[str, ...], tuple[float, float] | None]]] = {
+    "noise": [
+        (("sensor_noise", "compression"), None),
+        (("sensor_noise", "scene_change"), (0.8, 1.5)),
+        (("sensor_noise", "compression", "scene_change"), None),
+        (("sensor_noise", "compression", "motion_smear"), None),
+        (("compression",), None),
+        (("scene_change",), (0.8, 1.5)),
+    ],
+}
 
 
 def diagnose_case(case: gen.Case) -> dict[str, Any]:
@@ -67,11 +87,19 @@ def diagnose_case(case: gen.Case) -> dict[str, Any]:
             "seconds": time.time() - t0}
 
 
-def run(indices: list[int], sources: list[gen.Source], **case_kw: Any) -> list[dict[str, Any]]:
+def extension_kw(recipe: str, k: int) -> dict[str, Any]:
+    """make_case keywords of development-extension case ``k`` (seed 5000 + k)."""
+    recipes = EXTENSION_RECIPES[recipe]
+    effects, q_range = recipes[k % len(recipes)]
+    return {"base_seed": gen.EXTENSION_SEEDS[0], "effects": effects, "q_range": q_range}
+
+
+def run(indices: list[int], sources: list[gen.Source],
+        case_kw: Callable[[int], dict[str, Any]] | None = None) -> list[dict[str, Any]]:
     rows = []
     for i in indices:
         t0 = time.time()
-        case = gen.make_case(i, sources, **case_kw)
+        case = gen.make_case(i, sources, **(case_kw(i) if case_kw else {}))
         try:
             row = diagnose_case(case)
         except Exception as exc:  # a crash is a failure of the tool, recorded as such
@@ -118,12 +146,28 @@ def main() -> None:
     ap.add_argument("--indices", type=lambda t: [int(v) for v in t.split(",")],
                     help="comma-separated development case indices (0-63), e.g. to rerun "
                          "the failures")
+    ap.add_argument("--extension", choices=sorted(EXTENSION_RECIPES),
+                    help="run only the development extension (seeds 5000-5999) with these "
+                         "recipes")
+    ap.add_argument("--extension-cases", type=int, default=24,
+                    help="number of extension cases (seeds 5000 ...)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"
                                          / "diagnose_independent.json"))
     args = ap.parse_args()
     sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
     if not sources:
         sys.exit(f"no real images under {REAL}; set GEOSIM_REALDATA")
+    if args.extension:
+        n_ext = gen.EXTENSION_SEEDS[1] - gen.EXTENSION_SEEDS[0] + 1
+        if not 0 < args.extension_cases <= n_ext:
+            sys.exit(f"--extension-cases: 1-{n_ext}")
+        if Path(args.out).resolve().parent == (ROOT / "benchmarks" / "results").resolve() \
+                and Path(args.out).name == "diagnose_independent.json":
+            sys.exit("--extension: give --out (the halves' results file is not overwritten)")
+        recipe = args.extension
+        return _write(args.out, run(list(range(args.extension_cases)), sources,
+                                    lambda k: extension_kw(recipe, k)),
+                      sources, time.time(), f"extension '{recipe}': 5000 + k")
     first_val = gen.VALIDATION_FIRST_SEED - 1000
     dev = list(range(min(args.cases, first_val)))
     val = [i for i in range(first_val, N_VALIDATION_LAST + 1) if i % 2 == 1]
@@ -133,16 +177,23 @@ def main() -> None:
             sys.exit(f"--indices: development cases are 0-{first_val - 1}")
         idx = args.indices
     t0 = time.time()
-    rows = run(idx, sources)
+    _write(args.out, run(idx, sources), sources, t0,
+           "1000 + i; development 1000-1063, validation odd 1065-1127")
+
+
+def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
+           seeds: str) -> None:
     halves = {h: gen.score([r for r in rows if r["split"] == h])
-              for h in ("development", "validation") if any(r["split"] == h for r in rows)}
+              for h in ("development", "validation", "extension")
+              if any(r["split"] == h for r in rows)}
     out = {"halves": halves, "cases": rows, "seconds_total": time.time() - t0,
            "setup": {"phi": gen.PHI, "q_range": gen.Q_RANGE, "ranges": gen.RANGES,
                      "sources": [{"name": s.name, "gsd_m": s.gsd_m, "note": s.note}
                                  for s in sources],
-                     "n_cases": len(idx), "sat_px": 128,
-                     "seeds": "1000 + i; development 1000-1063, validation odd 1065-1127"}}
-    p = Path(args.out)
+                     "n_cases": len(rows), "sat_px": 128, "seeds": seeds,
+                     "extension_recipes": {k: [[list(e), q] for e, q in v]
+                                           for k, v in EXTENSION_RECIPES.items()}}}
+    p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(out, indent=1, default=float))
     print("\n" + table(rows) + "\n")

@@ -1,0 +1,171 @@
+"""Sensor noise under JPEG, from the quantised DCT coefficients of the real scene.
+
+JPEG quantises each 8×8 block's DCT coefficient k to a multiple of its step q_k and drops
+most high-frequency power: the white floor that :mod:`geosim.diagnose.noise` reads at
+0.3–0.5 cycles/px is gone (the steps there are far coarser than the noise), so noise
+under JPEG cannot be read from the spectrum. What survives is exact, though: the real
+scene's coefficient c_k of a block is the quantisation of (model coefficient μ_k + noise),
+so the index j = round(c_k / q_k) tells that μ_k + noise fell in [(j − ½) q_k, (j + ½) q_k).
+The noise variance σ² is the maximum of this interval-censored Gaussian likelihood, summed
+over blocks and coefficients; noise before JPEG raises the chance that a coefficient leaves
+the bin of its noise-free value, which is what the likelihood measures (no assumption on
+the spectrum the JPEG leaves). The steps q_k are read from the real scene itself (the
+lattice its coefficients lie on), so no quantisation table or quality is assumed.
+
+The JPEG DCT is orthonormal, so white pixel noise of variance σ² gives every AC
+coefficient the variance σ², and luma noise is Σ w_b² σ_b² for independent bands.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import fft as sfft
+from scipy.special import ndtr
+
+__all__ = ["JpegNoiseFit", "block_dct", "block_grid", "lattice_steps", "jpeg_noise_variance"]
+
+#: RMS jitter (DN, coefficient units) of the decoded coefficients around their lattice
+#: (integer Y conversion, integer DCT, rounding of the decoded pixels to 8 bit)
+LATTICE_JITTER = 0.5
+#: variance the encoder's and decoder's integer arithmetic add to every coefficient (DN²);
+#: measured: Pillow round trips of a noise-free smooth image give 0 with this floor
+ARITHMETIC_VAR_DN2 = 0.25
+#: fraction of coefficients allowed to be outliers (edges of moved objects, misfit)
+OUTLIER_FRACTION = 0.02
+#: a coefficient whose step is this coarse (or coarser) holds only zeros: no information
+MAX_STEP = 255
+#: grid of luma noise variances searched (DN²)
+VAR_GRID_DN2 = np.concatenate([[0.0], np.geomspace(0.02, 400.0, 241)])
+
+
+@dataclass
+class JpegNoiseFit:
+    """Luma noise variance from the censored DCT coefficients.
+
+    ``var_dn2``: maximum-likelihood luma noise variance over all informative coefficients
+    (arithmetic floor removed); ``var_low_dn2`` / ``var_high_dn2``: the same from the
+    low-frequency (u + v ≤ 2) and the other coefficients (white noise: equal; a misfit of
+    the model: unequal); ``steps``: the 8×8 quantisation steps found (0 = not used);
+    ``n_blocks``: blocks used; ``offset_px``: the block grid's phase used (row, col).
+    """
+
+    var_dn2: float
+    var_low_dn2: float
+    var_high_dn2: float
+    steps: np.ndarray
+    n_blocks: int
+    offset_px: tuple[int, int] = (0, 0)
+
+
+def block_dct(grey: np.ndarray, offset_px: tuple[int, int], mask: np.ndarray | None = None
+              ) -> np.ndarray:
+    """Orthonormal 8×8 DCT of the blocks starting at ``offset_px`` (row, col), (n, 64);
+    only blocks wholly inside ``mask`` when given."""
+    r0, c0 = int(offset_px[0]) % 8, int(offset_px[1]) % 8
+    g = np.asarray(grey, float)[r0:, c0:]
+    nr, nc = g.shape[0] // 8, g.shape[1] // 8
+    blk = g[:nr * 8, :nc * 8].reshape(nr, 8, nc, 8).transpose(0, 2, 1, 3)
+    if mask is not None:
+        m = np.asarray(mask, bool)[r0:, c0:][:nr * 8, :nc * 8]
+        keep = m.reshape(nr, 8, nc, 8).all(axis=(1, 3))
+        blk = blk[keep]
+    else:
+        blk = blk.reshape(-1, 8, 8)
+    return sfft.dctn(blk, type=2, norm="ortho", axes=(-2, -1)).reshape(-1, 64)
+
+
+def lattice_steps(coef: np.ndarray, *, jitter: float = LATTICE_JITTER,
+                  max_step: int = MAX_STEP) -> np.ndarray:
+    """Quantisation step of each coefficient (columns of ``coef``): the integer step q whose
+    lattice, with Gaussian jitter, is most likely to have produced the values.
+
+    The likelihood of a value c is q · Σ_m φ((c − m q) / jitter) / jitter: a finer lattice
+    fits any value but spreads its probability over more points, a coarser one must
+    pass through every value."""
+    qs = np.arange(1, max_step + 1, dtype=float)[:, None]
+    steps = np.zeros(coef.shape[1])
+    for k in range(coef.shape[1]):
+        x = coef[:, k][None, :]
+        d = x - qs * np.rint(x / qs)
+        dens = sum(np.exp(-0.5 * ((d + m * qs) / jitter) ** 2) for m in (-1, 0, 1))
+        ll = np.sum(np.log(np.maximum(qs * dens / (jitter * np.sqrt(2 * np.pi)), 1e-300)),
+                    axis=1)
+        steps[k] = qs[int(np.argmax(ll)), 0]
+    return steps
+
+
+def _lattice_gain(x: np.ndarray, *, jitter: float = LATTICE_JITTER, max_step: int = 64
+                  ) -> float:
+    """Log-likelihood gain of the best lattice (step ≥ 2) over none (step 1) for values x."""
+    qs = np.arange(1, max_step + 1, dtype=float)[:, None]
+    d = x[None, :] - qs * np.rint(x[None, :] / qs)
+    dens = sum(np.exp(-0.5 * ((d + m * qs) / jitter) ** 2) for m in (-1, 0, 1))
+    ll = np.sum(np.log(np.maximum(qs * dens, 1e-300)), axis=1)
+    return float(np.max(ll[1:]) - ll[0])
+
+
+def block_grid(grey: np.ndarray, mask: np.ndarray, first_guess: tuple[int, int] = (0, 0)
+               ) -> tuple[int, int]:
+    """Phase (row, col) of the JPEG block grid: the one whose lowest AC coefficients lie
+    best on a lattice (``first_guess`` wins ties)."""
+    best, best_gain = (int(first_guess[0]) % 8, int(first_guess[1]) % 8), -np.inf
+    cands = [best] + [(r, c) for r in range(8) for c in range(8) if (r, c) != best]
+    for off in cands:
+        coef = block_dct(grey, off, mask)
+        if coef.shape[0] < 8:
+            continue
+        gain = sum(_lattice_gain(coef[:, k]) for k in (1, 8, 9))
+        if gain > best_gain + 1e-9:
+            best, best_gain = off, gain
+    return best
+
+
+def _censored_loglik(j: np.ndarray, mu: np.ndarray, q: float, spread: float,
+                     var_grid: np.ndarray) -> np.ndarray:
+    """Log-likelihood over ``var_grid`` of bin indices ``j`` given means ``mu``, with a
+    small uniform outlier part over ``spread`` (DN)."""
+    lo = (j - 0.5) * q - mu
+    hi = (j + 0.5) * q - mu
+    s = np.sqrt(var_grid + ARITHMETIC_VAR_DN2)[:, None]
+    p = ndtr(hi[None] / s) - ndtr(lo[None] / s)
+    out = OUTLIER_FRACTION * min(1.0, q / max(spread, q))
+    return np.sum(np.log((1 - OUTLIER_FRACTION) * p + out), axis=1)
+
+
+def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
+                        offset_px: tuple[int, int], mask: np.ndarray) -> JpegNoiseFit:
+    """Luma noise variance (DN²) of a JPEG'd ``real_grey`` beyond ``model_grey`` (the
+    deterministic model *before* compression, same grid), from blocks wholly in ``mask``
+    on the JPEG block grid (``offset_px``: the row, col phase of the block edges found by
+    the compression test; checked against the lattice, :func:`block_grid`)."""
+    offset_px = block_grid(real_grey, mask, offset_px)
+    cr = block_dct(real_grey, offset_px, mask)
+    cm = block_dct(model_grey, offset_px, mask)
+    empty = JpegNoiseFit(0.0, 0.0, 0.0, np.zeros((8, 8)), int(cr.shape[0]), offset_px)
+    if cr.shape[0] < 8:
+        return empty
+    steps = lattice_steps(cr)
+    steps[0] = 0.0                      # DC: the level shift and the radiometry misfit
+    steps[steps >= MAX_STEP] = 0.0
+    u, v = np.divmod(np.arange(64), 8)
+    low = (u + v) <= 2
+    ll_low = np.zeros(VAR_GRID_DN2.size)
+    ll_high = np.zeros(VAR_GRID_DN2.size)
+    for k in np.flatnonzero(steps > 1):  # a step of 1 is no quantisation: not censored
+        q = float(steps[k])
+        j = np.rint(cr[:, k] / q)
+        ll = _censored_loglik(j, cm[:, k], q, 6.0 * float(np.std(cr[:, k])), VAR_GRID_DN2)
+        if low[k]:
+            ll_low += ll
+        else:
+            ll_high += ll
+    if not np.any(steps > 1):
+        return empty
+    best = VAR_GRID_DN2[int(np.argmax(ll_low + ll_high))]
+    v_low = VAR_GRID_DN2[int(np.argmax(ll_low))] if np.any(steps[low] > 1) else best
+    v_high = VAR_GRID_DN2[int(np.argmax(ll_high))] if np.any(steps[~low] > 1) else best
+    return JpegNoiseFit(float(best), float(v_low), float(v_high),
+                        np.where(steps > 1, steps, 0.0).reshape(8, 8), int(cr.shape[0]),
+                        offset_px)

@@ -1,0 +1,115 @@
+"""Noise under JPEG from the censored DCT coefficients (geosim.diagnose.jpeg_noise).
+
+Truth is independent of the code under test: a smooth real image (the Brazil pasture,
+area-averaged to 0.64 m) gets Gaussian noise of a known σ per band, is rounded to whole
+DN and JPEG-compressed with Pillow (libjpeg, its standard tables); the quantisation steps
+are compared with the JPEG standard's luminance table (ITU-T T.81, Annex K.1) scaled
+as libjpeg scales it.
+"""
+
+from __future__ import annotations
+
+import io
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from geosim.diagnose.jpeg_noise import block_dct, jpeg_noise_variance, lattice_steps
+from geosim.diagnose.noise import estimate_noise
+from geosim.diagnose.spectra import block_origins
+
+LUMA = np.array([0.299, 0.587, 0.114])
+#: ITU-T T.81 Annex K.1, Table K.1 (luminance), row-major
+T81_LUMA = np.array([
+    16, 11, 10, 16, 24, 40, 51, 61, 12, 12, 14, 19, 26, 58, 60, 55,
+    14, 13, 16, 24, 40, 57, 69, 56, 14, 17, 22, 29, 51, 87, 80, 62,
+    18, 22, 37, 56, 68, 109, 103, 77, 24, 35, 55, 64, 81, 104, 113, 92,
+    49, 64, 78, 87, 103, 121, 120, 101, 72, 92, 95, 98, 112, 100, 103, 99]).reshape(8, 8)
+
+
+def _libjpeg_table(quality: int) -> np.ndarray:
+    scale = 5000 // quality if quality < 50 else 200 - 2 * quality
+    return np.clip((T81_LUMA * scale + 50) // 100, 1, 255)
+
+
+def _jpeg(img: np.ndarray, quality: int) -> np.ndarray:
+    hwc = np.moveaxis(np.clip(np.rint(img), 0, 255).astype(np.uint8), 0, -1)
+    buf = io.BytesIO()
+    Image.fromarray(hwc, "RGB").save(buf, format="JPEG", quality=quality)
+    buf.seek(0)
+    return np.moveaxis(np.asarray(Image.open(buf).convert("RGB"), float), -1, 0)
+
+
+@pytest.fixture(scope="module")
+def smooth(realdata) -> np.ndarray:
+    rasterio = pytest.importorskip("rasterio")
+    with rasterio.open(realdata / "brazil_pasture_10cm_epsg3395.tif") as ds:
+        a = ds.read(window=((1000, 2280), (1000, 2280)))[:3].astype(np.float32)
+    return np.stack([cv2.resize(b, (128, 128), interpolation=cv2.INTER_AREA)
+                     for b in a]).astype(float)
+
+
+@pytest.mark.parametrize("quality", [30, 50, 75])
+def test_steps_are_the_standard_table(smooth, quality):
+    rng = np.random.default_rng(0)
+    real = _jpeg(smooth + rng.normal(0, 2.0, smooth.shape), quality)
+    steps = lattice_steps(block_dct(np.tensordot(LUMA, real, 1), (0, 0))).reshape(8, 8)
+    table = _libjpeg_table(quality)
+    # low frequencies (u + v <= 3) hold enough non-zero coefficients to show their lattice
+    u, v = np.mgrid[0:8, 0:8]
+    low = ((u + v) <= 3) & ((u + v) > 0)
+    assert np.array_equal(steps[low], table[low]), (steps[low], table[low])
+
+
+@pytest.mark.parametrize("quality", [30, 50, 75])
+@pytest.mark.parametrize("sigma", [0.0, 2.0, 3.0, 5.0])
+def test_noise_variance_under_jpeg(smooth, quality, sigma):
+    """Estimated luma noise variance within 25 % (+0.3 DN²) of σ²·Σw² + rounding."""
+    rng = np.random.default_rng(int(10 * sigma) + quality)
+    noisy = np.clip(np.rint(smooth + rng.normal(0, sigma, smooth.shape)), 0, 255)
+    real = _jpeg(noisy, quality)
+    fit = jpeg_noise_variance(np.tensordot(LUMA, real, 1), np.tensordot(LUMA, smooth, 1),
+                              (0, 0), np.ones(real.shape[-2:], bool))
+    true_var = float(np.sum(LUMA**2)) * (sigma**2 + 1.0 / 12.0)
+    assert abs(fit.var_dn2 - true_var) <= 0.25 * true_var + 0.3, (fit.var_dn2, true_var)
+
+
+def test_estimate_noise_under_jpeg_per_band_and_claim(smooth):
+    """Through estimate_noise: per-band variance of the noise (rounding removed), claimed
+    for σ = 3 DN at quality 40, not claimed without noise. The spectral white floor alone
+    (the path without ``uncompressed``) does not claim it: the JPEG removed the floor's
+    high-frequency part, so the incoherent power is far from white."""
+    rng = np.random.default_rng(5)
+    mask = np.ones(smooth.shape[-2:], bool)
+    org = block_origins(smooth.shape[-2:], block_px=32)
+    for sigma, claimed in ((3.0, True), (0.0, False)):
+        noisy = np.clip(np.rint(smooth + rng.normal(0, sigma, smooth.shape)), 0, 255)
+        real = _jpeg(noisy, 40)
+        model_jpeg = _jpeg(smooth, 40)
+        est = estimate_noise(real, model_jpeg, mask, origins=org, block_px=32, quantized=True,
+                             uncompressed=smooth, block_offset_px=(0, 0))
+        assert est.claimed is claimed, (sigma, est.white_var_dn2, est.whiteness)
+        if claimed:
+            assert abs(est.white_var_dn2 - sigma**2) < 0.25 * sigma**2, est.white_var_dn2
+            spectral = estimate_noise(real, model_jpeg, mask, origins=org, block_px=32,
+                                      quantized=True)
+            assert not spectral.claimed, (spectral.white_var_dn2, spectral.whiteness)
+        else:
+            assert est.white_var_dn2 < 1.0
+
+
+def test_block_offset_is_respected(smooth):
+    """A JPEG grid starting at (3, 5): steps found on that grid, not on (0, 0)."""
+    rng = np.random.default_rng(2)
+    noisy = np.clip(np.rint(smooth + rng.normal(0, 2.0, smooth.shape)), 0, 255)
+    pad = np.pad(noisy, ((0, 0), (5, 0), (3, 0)), mode="edge")   # grid at row 5, col 3
+    real = _jpeg(pad, 50)[:, 5:, 3:]
+    # in the cropped image block edges lie at rows 3, 11, ... and cols 5, 13, ...
+    grey = np.tensordot(LUMA, real, 1)
+    right = lattice_steps(block_dct(grey, (3, 5))).reshape(8, 8)
+    wrong = lattice_steps(block_dct(grey, (0, 0))).reshape(8, 8)
+    table = _libjpeg_table(50)
+    assert right[0, 1] == table[0, 1] and right[1, 0] == table[1, 0]
+    assert not (wrong[0, 1] == table[0, 1] and wrong[1, 0] == table[1, 0])
