@@ -148,3 +148,27 @@ def test_jpeg_at_high_q_is_not_called_resampling():
     claimed, se_base, se_ref, _ = _run({"compression": {"quality": 50}}, q=4.0, seed=15)
     assert set(claimed) == {"compression"}, list(claimed)
     assert se_ref <= 0.5 * se_base, (se_base, se_ref)
+
+
+def test_extension_cases_leave_the_halves_unchanged(realdata, samples_dir):
+    """The development extension (seeds 5000-5999, forced effect sets) is its own split;
+    forcing effects outside it is refused, and the halves' seeds still give the cases
+    recorded in benchmarks/results/diagnose_independent.json (truth and Q)."""
+    import json
+
+    sources = gen.pick_sources(gen.list_sources(realdata, samples_dir))
+    stored = {r["case"]: r for r in json.loads(
+        (ROOT / "benchmarks" / "results" / "diagnose_independent.json").read_text())["cases"]}
+    for i in (8, 13, 52):       # noise + JPEG, colour + shift + noise, colour
+        case = gen.make_case(i, sources)
+        assert case.split == "development"
+        assert case.truth == stored[case.name]["truth"]
+        assert case.q == pytest.approx(stored[case.name]["q_true"], abs=1e-12)
+    ext = gen.make_case(3, sources, base_seed=gen.EXTENSION_SEEDS[0],
+                        effects=("sensor_noise", "scene_change"), q_range=(0.8, 1.5))
+    assert ext.split == "extension" and ext.seed == 5003 and ext.name == "x5003"
+    assert set(ext.truth) == {"sensor_noise", "scene_change"} and 0.8 <= ext.q <= 1.5
+    with pytest.raises(ValueError, match="extension"):
+        gen.make_case(3, sources, effects=("sensor_noise",))
+    with pytest.raises(ValueError, match="one per family"):
+        gen.draw_named_effects(np.random.default_rng(0), ("haze", "colour_response"))

@@ -88,7 +88,14 @@ MAX_CLAIMED_QUALITY = 90
 #: axes; tuned on the development half)
 MIN_BLOCK_RATIO = 1.2
 #: a claimed noise must lower the refined spectral error to this fraction or less
-NOISE_SPECTRAL_GAIN = 0.9
+NOISE_SPECTRAL_GAIN = 1.0
+#: noise realisations whose mean Welch power stands for a noisy model's expected spectrum
+#: in the spectral tests (one realisation scatters bin by bin as much as the real scene's
+#: own noise: at low Q the LV baseline, sharpened to mimic the noise, then looks as good)
+NOISE_REALISATIONS = 4
+#: ... and may exceed the baseline's by this many standard deviations of the single
+#: realisations' spectral errors (0: never)
+NOISE_SCATTER_TOLERANCE = 1.0
 MIN_BLOCK_Z = 3.0
 #: resampling not chosen by the transfer fit is still claimed when its aliasing, which the
 #: transfer fit does not see, brings the refined power spectrum this much closer (fraction
@@ -163,6 +170,11 @@ class SpectralSetup:
 
 def _grey(img: np.ndarray) -> np.ndarray:
     return luma(img) if img.ndim == 3 else np.asarray(img, float)
+
+
+def _greys(img: np.ndarray | list[np.ndarray]) -> np.ndarray | list[np.ndarray]:
+    """Grey level of an image, or of each image of a list (noise realisations)."""
+    return [_grey(i) for i in img] if isinstance(img, list) else _grey(img)
 
 
 def _bands(img: np.ndarray) -> np.ndarray:
@@ -707,6 +719,40 @@ def _aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: 
     return model.without(blur=eff)
 
 
+def _realisations(inp: Inputs, m: ForwardModel, rng_seed: int) -> list[np.ndarray]:
+    """The delivered refined simulation of ``m``; with noise claimed, NOISE_REALISATIONS
+    noise realisations of it (the first is the one delivered), whose mean Welch power is
+    the model's expected spectrum."""
+    n = NOISE_REALISATIONS if m.noise is not None and m.noise.claimed else 1
+    return [m.delivered(inp.simulate, np.random.default_rng(rng_seed + k),
+                        quantized=inp.quantized) for k in range(n)]
+
+
+def _scatter(img: list[np.ndarray], se_of: Callable[[np.ndarray], float]) -> float:
+    """NOISE_SCATTER_TOLERANCE standard deviations of the single realisations' spectral
+    errors (0 for one image): the expected spectrum of a noisy model may exceed another
+    model's error by this much, as two realisations of the truth differ at the floor."""
+    if len(img) < 2:
+        return 0.0
+    return NOISE_SCATTER_TOLERANCE * float(np.std([se_of(i) for i in img], ddof=1))
+
+
+def _noise_helps(inp: Inputs, model: ForwardModel, se_of: Callable[[Any], float],
+                 rng_seed: int) -> tuple[ForwardModel, list[dict[str, str]]]:
+    """Noise is kept only where adding it brings the expected spectra together: its
+    expected spectral error at most NOISE_SPECTRAL_GAIN × the model's without it (plus
+    the realisations' scatter)."""
+    if model.noise is None or not model.noise.claimed:
+        return model, []
+    quiet = model.without(noise=None)
+    noisy = _realisations(inp, model, rng_seed)
+    if se_of(noisy) <= NOISE_SPECTRAL_GAIN * se_of(_realisations(inp, quiet, rng_seed)) \
+            + _scatter(noisy, se_of):
+        return model, []
+    return quiet, [{"name": "sensor_noise",
+                    "reason": "adding it does not improve the expected spectral fit"}]
+
+
 def _jpeg_delivered_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
                               setup: SpectralSetup, se_of: Callable[[np.ndarray], float],
                               rng_seed: int) -> tuple[ForwardModel, list[dict[str, str]]]:
@@ -724,8 +770,7 @@ def _jpeg_delivered_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelecti
         return model, []
 
     def se(m: ForwardModel) -> float:
-        return se_of(m.delivered(inp.simulate, np.random.default_rng(rng_seed),
-                                 quantized=inp.quantized))
+        return se_of(_realisations(inp, m, rng_seed))
 
     q, eff = _refit_without(sel, setup, [n for n in model.blur if n not in ISOTROPIC],
                             inp.q_base)
@@ -746,30 +791,21 @@ def _never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
 
     "At least as well" holds on the blocks outside the changed regions (``se_of``) and,
     when ``se_whole`` is given, also over the whole valid extent: the refined simulation
-    is delivered whole, changed areas included."""
+    is delivered whole, changed areas included. A model with noise is judged by its
+    expected spectrum (:func:`_realisations`) within the scatter of single realisations
+    (:func:`_scatter`): at low Q the LV baseline, sharpened until it mimics the noise,
+    sits at the floor where a realisation of the true model fits no better (extension
+    cases: the true model with fresh noise 0.072–0.080 against the baseline's 0.077)."""
     base = np.round(inp.base) if inp.quantized else inp.base
     base_se = se_of(base)
     base_whole = se_whole(base) if se_whole is not None else 0.0
     withdrawn: list[dict[str, str]] = []
 
-    def delivered(m: ForwardModel) -> np.ndarray:
-        return m.delivered(inp.simulate, np.random.default_rng(rng_seed),
-                           quantized=inp.quantized)
-
-    def se(m: ForwardModel) -> float:
-        return se_of(delivered(m))
-
     def ok(m: ForwardModel) -> bool:
-        img = delivered(m)
-        return se_of(img) <= base_se and (se_whole is None or se_whole(img) <= base_whole)
+        img = _realisations(inp, m, rng_seed)
+        return se_of(img) <= base_se + _scatter(img, se_of) and (
+            se_whole is None or se_whole(img) <= base_whole + _scatter(img, se_whole))
 
-    if model.noise is not None and model.noise.claimed:
-        # noise is claimed only where adding it really brings the spectra together
-        quiet = model.without(noise=None)
-        if se(model) > NOISE_SPECTRAL_GAIN * se(quiet):
-            model = quiet
-            withdrawn.append({"name": "sensor_noise",
-                              "reason": "adding it does not improve the spectral fit"})
     if ok(model):
         return model, withdrawn
     if model.noise is not None and model.noise.claimed:
@@ -858,10 +894,13 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         # block steps (they stand out once the blur is modelled)
         model = model.without(compression=_find_compression(
             inp, reg, model_img=model.deterministic(simulate)))
+    comp = model.compression
     model = model.without(noise=estimate_noise(
         inp.real, model.deterministic(simulate), fit_mask, origins=setup.origins,
         block_px=setup.block_px, quantized=inp.quantized,
-        compressed=model.compression is not None))
+        uncompressed=(model.without(compression=None).deterministic(simulate)
+                      if comp is not None else None),
+        block_offset_px=comp.offset_px if comp is not None else (0, 0)))
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
     det = model.deterministic(simulate)
@@ -879,23 +918,25 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     if len(ev_origins) < 4:
         ev_origins = setup.origins
 
-    def se_of(img: np.ndarray) -> float:
-        return spectral_error(_grey(img), inp.grey, block_px=setup.block_px, origins=ev_origins)
+    def se_of(img: np.ndarray | list[np.ndarray]) -> float:
+        return spectral_error(_greys(img), inp.grey, block_px=setup.block_px,
+                              origins=ev_origins)
 
     noise_seed = int(rng.integers(0, 2**31 - 1))
+    model, withdrawn_noise = _noise_helps(inp, model, se_of, noise_seed)
     model = _aliasing_test(inp, model, sel, setup, se_of, noise_seed, blur_candidates,
                            ev_origins)
     found = model
     all_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=inp.valid)
 
-    def se_whole(img: np.ndarray) -> float:
-        return spectral_error(_grey(img), inp.grey, block_px=setup.block_px,
+    def se_whole(img: np.ndarray | list[np.ndarray]) -> float:
+        return spectral_error(_greys(img), inp.grey, block_px=setup.block_px,
                               origins=all_origins)
 
     model, withdrawn_iso = _jpeg_delivered_isotropic(inp, model, sel, setup, se_of, noise_seed)
     model, withdrawn = _never_worse(inp, model, sel, setup, se_of, noise_seed,
                                     se_whole if len(all_origins) >= 4 else None)
-    withdrawn = withdrawn_iso + withdrawn
+    withdrawn = withdrawn_noise + withdrawn_iso + withdrawn
     refined = model.delivered(simulate, np.random.default_rng(noise_seed),
                               quantized=inp.quantized)
     claims = _claims(inp, model.without(registration=reg, compression=found.compression,
@@ -1035,6 +1076,7 @@ def _summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Spectr
         "noise": {"gain_dn": n.gain_dn if n else 0.0, "read_var_dn2": n.read_var_dn2 if n else 0.0,
                   "white_variance_dn2": n.white_var_dn2 if n else 0.0,
                   "whiteness": n.whiteness if n else float("nan"),
+                  "estimator": n.estimator if n else None,
                   "claimed": bool(n is not None and n.claimed), "quantized": inp.quantized},
         "compression_test": (model.compression.test if model.compression is not None
                              else blockiness(_grey(inp.real - _band_affine(

@@ -48,7 +48,8 @@ class JpegNoiseFit:
     (arithmetic floor removed); ``var_low_dn2`` / ``var_high_dn2``: the same from the
     low-frequency (u + v ≤ 2) and the other coefficients (white noise: equal; a misfit of
     the model: unequal); ``steps``: the 8×8 quantisation steps found (0 = not used);
-    ``n_blocks``: blocks used; ``offset_px``: the block grid's phase used (row, col).
+    ``n_blocks``: blocks used; ``offset_px``: the block grid's phase used (row, col);
+    ``delta_bic``: 2 Δ log-likelihood of ``var_dn2`` against no noise, minus ln(values).
     """
 
     var_dn2: float
@@ -57,6 +58,7 @@ class JpegNoiseFit:
     steps: np.ndarray
     n_blocks: int
     offset_px: tuple[int, int] = (0, 0)
+    delta_bic: float = 0.0
 
 
 def block_dct(grey: np.ndarray, offset_px: tuple[int, int], mask: np.ndarray | None = None
@@ -163,9 +165,12 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
             ll_high += ll
     if not np.any(steps > 1):
         return empty
-    best = VAR_GRID_DN2[int(np.argmax(ll_low + ll_high))]
+    ll = ll_low + ll_high
+    best = VAR_GRID_DN2[int(np.argmax(ll))]
+    n_values = int(np.sum(steps > 1)) * int(cr.shape[0])
+    dbic = float(2.0 * (np.max(ll) - ll[0]) - np.log(max(n_values, 2)))
     v_low = VAR_GRID_DN2[int(np.argmax(ll_low))] if np.any(steps[low] > 1) else best
     v_high = VAR_GRID_DN2[int(np.argmax(ll_high))] if np.any(steps[~low] > 1) else best
     return JpegNoiseFit(float(best), float(v_low), float(v_high),
                         np.where(steps > 1, steps, 0.0).reshape(8, 8), int(cr.shape[0]),
-                        offset_px)
+                        offset_px, dbic)

@@ -130,7 +130,10 @@ class NoiseEstimate:
 
     ``white_var_dn2`` is the per-band variance of the white, incoherent part of the
     residual at high frequencies (rounding removed); ``whiteness`` the ratio of the
-    incoherent power at mid to high frequencies (1 for white noise).
+    incoherent power at mid to high frequencies (1 for white noise). ``estimator``:
+    ``"spectral_floor"`` (that) or, under JPEG, ``"jpeg_dct_censored"`` (the variance
+    from the quantised DCT coefficients; whiteness then the ratio of the low- and
+    high-frequency coefficients' estimates).
     """
 
     gain_dn: float
@@ -145,6 +148,7 @@ class NoiseEstimate:
     variance_dn2: np.ndarray = field(default_factory=lambda: np.zeros(0))
     mean_variance_sigma: float = float("inf")
     delta_bic: float = 0.0
+    estimator: str = "spectral_floor"
 
 
 @dataclass

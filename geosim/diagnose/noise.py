@@ -11,6 +11,14 @@ compared with mid frequencies (0.1–0.25): white noise gives a ratio near 1, st
 residuals rise towards the frequencies that carry the scene's power. Its brightness
 dependence (var = a·s + b) comes from block variances of the high-passed residual
 (:func:`geosim.diagnose.fit.fit_noise`), scaled to the white level.
+
+Under JPEG the floor is gone: the quantisation removes the high-frequency power where it
+would be read (the steps there are far coarser than the noise) and what remains of the
+incoherent power is the JPEG's own error, far from white (mid/high ratios ≈ 10–20 with
+and without noise). There the white level comes from the quantised DCT coefficients
+instead (:func:`geosim.diagnose.jpeg_noise.jpeg_noise_variance`: how often noise before
+the JPEG moved a coefficient out of the bin of its noise-free value), and its whiteness
+is the ratio of the estimates from the low-frequency and the other coefficients.
 """
 
 from __future__ import annotations
@@ -19,6 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from geosim.diagnose.fit import HANN_CORRELATION, fit_noise
+from geosim.diagnose.jpeg_noise import jpeg_noise_variance
 from geosim.diagnose.model import NoiseEstimate
 from geosim.diagnose.spectra import cross_spectrum
 from geosim.physics.radiometry import LUMA_WEIGHTS, luma
@@ -31,8 +40,10 @@ MIN_NOISE_VAR_DN2 = 1.0
 #: (development half: noise + JPEG gave ratios up to ≈ 4.5, JPEG alone ≈ 15; the sample
 #: site, real noise under a changed scene, 2.1–5.1)
 MAX_WHITENESS = 6.0
-#: the same after JPEG, which removes part of the high-frequency floor
-MAX_WHITENESS_COMPRESSED = 6.0
+#: under JPEG: the largest ratio of the noise variances estimated from the low-frequency
+#: and from the other DCT coefficients (white noise: 1; development extension, noise
+#: under JPEG: 1.0–1.6)
+MAX_WHITENESS_COMPRESSED = 3.0
 HIGH_BAND = (0.3, 0.5)
 MID_BAND = (0.1, 0.25)
 
@@ -46,7 +57,8 @@ def _hp_factor(sigma: float) -> float:
 
 def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
                    origins: list[tuple[int, int]], block_px: int, quantized: bool,
-                   compressed: bool = False) -> NoiseEstimate:
+                   uncompressed: np.ndarray | None = None,
+                   block_offset_px: tuple[int, int] = (0, 0)) -> NoiseEstimate:
     """Noise in ``real`` beyond the deterministic ``model`` (both bands-first, DN).
 
     Parameters
@@ -59,10 +71,12 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
         Welch blocks for the incoherent spectrum.
     quantized
         The real scene holds whole DN (its rounding, 1/12 DN² per band, is removed).
-    compressed
-        The scene was JPEG-compressed after the noise: the quantisation of the DCT removed
-        the high-frequency part of the floor, so the whiteness limit is looser
-        (``MAX_WHITENESS_COMPRESSED``; the refit's spectral test still applies).
+    uncompressed, block_offset_px
+        When the scene was JPEG-compressed after the noise: the deterministic model
+        *before* compression and the phase (row, col) of the JPEG block grid. The JPEG's
+        quantisation removed the high-frequency floor, so the white level and its
+        whiteness come from the censored DCT coefficients instead
+        (:func:`geosim.diagnose.jpeg_noise.jpeg_noise_variance`).
     """
     w2 = float(np.sum(np.square(LUMA_WEIGHTS))) if real.shape[0] == 3 else 1.0
     g_real = luma(real) if real.shape[0] == 3 else real[0]
@@ -75,9 +89,19 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
     level_hi = float(np.median(incoherent[hi]))
     level_mid = float(np.median(incoherent[mid]))
     qv = 1.0 / 12.0 if quantized else 0.0
-    white = max(level_hi / w2 - qv, 0.0)           # per band, DN²
-    whiteness = level_mid / max(level_hi, 1e-12)
-    limit = MAX_WHITENESS_COMPRESSED if compressed else MAX_WHITENESS
+    jf = None
+    if uncompressed is None:
+        white = max(level_hi / w2 - qv, 0.0)           # per band, DN²
+        whiteness = level_mid / max(level_hi, 1e-12)
+        limit = MAX_WHITENESS
+    else:
+        g_unc = luma(uncompressed) if uncompressed.shape[0] == 3 else uncompressed[0]
+        jf = jpeg_noise_variance(g_real, g_unc, block_offset_px, mask)
+        level_hi = jf.var_dn2
+        white = max(jf.var_dn2 / w2 - qv, 0.0)
+        lo_hi = sorted((jf.var_low_dn2, jf.var_high_dn2))
+        whiteness = lo_hi[1] / max(lo_hi[0], 1e-12)
+        limit = MAX_WHITENESS_COMPRESSED
     claimed = bool(white >= MIN_NOISE_VAR_DN2 and whiteness <= limit)
     # evidence (reported, not used to decide): Gaussian log-likelihood ratio of the floor
     # against the rounding floor over the independent high-band estimates
@@ -85,6 +109,8 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
     floor = max(qv * w2, 1e-3)
     x = max(level_hi / floor, 1.0)
     dbic = float(n_ind * (x - 1 - np.log(x)) - 2 * np.log(n_ind))
+    if jf is not None:
+        dbic = jf.delta_bic
     # brightness dependence from block variances of the high-passed residual
     resid = real - model
     hp = resid - np.stack([ndimage.gaussian_filter(b, 1.0) for b in resid])
@@ -101,4 +127,5 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
                          read_sigma=float(rs), white_var_dn2=white, whiteness=float(whiteness),
                          claimed=claimed, quantization_dn2=qv,
                          brightness_dn=nf.brightness_dn, variance_dn2=nf.variance_dn2,
-                         mean_variance_sigma=nf.mean_variance_sigma, delta_bic=dbic)
+                         mean_variance_sigma=nf.mean_variance_sigma, delta_bic=dbic,
+                         estimator="spectral_floor" if jf is None else "jpeg_dct_censored")

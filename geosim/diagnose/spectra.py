@@ -267,19 +267,26 @@ def directional_profiles(values: np.ndarray, fy: np.ndarray, fx: np.ndarray, *,
     return f, a, m
 
 
-def spectral_error(sim: np.ndarray, real: np.ndarray, *, valid: np.ndarray | None = None,
-                   block_px: int = 32, n_radial: int = 12, n_angular: int = 8,
-                   origins: list[tuple[int, int]] | None = None) -> float:
+def spectral_error(sim: np.ndarray | list[np.ndarray], real: np.ndarray, *,
+                   valid: np.ndarray | None = None, block_px: int = 32, n_radial: int = 12,
+                   n_angular: int = 8, origins: list[tuple[int, int]] | None = None) -> float:
     """RMS over radial × angular frequency bins of log10(P_sim / P_real).
 
     Power spectra are Welch estimates on the grey level (or on each given 2-D image);
     bins run from 1/block_px to 0.5 cycles per pixel radially and over [0, 180) in
     orientation. 0 means identical spectra; 0.3 means a typical factor of 2 in power.
+    ``sim`` may be a list of 2-D images (noise realisations of one model): their Welch
+    powers are averaged, an estimate of the model's *expected* spectrum.
     """
-    s = np.asarray(sim, dtype=float)
+    sims = sim if isinstance(sim, list) else [sim]
     r = np.asarray(real, dtype=float)
-    cs = cross_spectrum(s, r, block_px=block_px, valid=valid, origins=origins)
-    _, _, ps, _ = polar_bin_mean(cs.s_ss, cs.fy, cs.fx, n_radial=n_radial, n_angular=n_angular)
+    s_ss = None
+    for one in sims:
+        cs = cross_spectrum(np.asarray(one, dtype=float), r, block_px=block_px, valid=valid,
+                            origins=origins)
+        s_ss = cs.s_ss if s_ss is None else s_ss + cs.s_ss
+    _, _, ps, _ = polar_bin_mean(s_ss / len(sims), cs.fy, cs.fx, n_radial=n_radial,
+                                 n_angular=n_angular)
     _, _, pr, _ = polar_bin_mean(cs.s_rr, cs.fy, cs.fx, n_radial=n_radial, n_angular=n_angular)
     ok = np.isfinite(ps) & np.isfinite(pr)
     ratio = np.log10(np.maximum(ps[ok], 1e-20) / np.maximum(pr[ok], 1e-20))
