@@ -6,6 +6,8 @@ most high-frequency power: the white floor that :mod:`geosim.diagnose.noise` rea
 under JPEG cannot be read from the spectrum. What survives is exact, though: the real
 scene's coefficient c_k of a block is the quantisation of (model coefficient μ_k + noise),
 so the index j = round(c_k / q_k) tells that μ_k + noise fell in [(j − ½) q_k, (j + ½) q_k).
+Each DCT frequency k gets its own gain g_k (real ≈ g_k μ_k + noise, profiled out): a blur
+or contrast the model lacks scales the coefficients coherently and is not noise.
 The noise variance σ² is the maximum of this interval-censored Gaussian likelihood, summed
 over blocks and coefficients; noise before JPEG raises the chance that a coefficient leaves
 the bin of its noise-free value, which is what the likelihood measures (no assumption on
@@ -37,7 +39,11 @@ OUTLIER_FRACTION = 0.02
 #: a coefficient whose step is this coarse (or coarser) holds only zeros: no information
 MAX_STEP = 255
 #: grid of luma noise variances searched (DN²)
-VAR_GRID_DN2 = np.concatenate([[0.0], np.geomspace(0.02, 400.0, 241)])
+VAR_GRID_DN2 = np.concatenate([[0.0], np.geomspace(0.02, 400.0, 161)])
+#: per-coefficient gains g searched (real ≈ g·model + noise in each DCT frequency): a blur
+#: the model lacks scales a frequency's coefficients, coherently, and is not noise (as the
+#: per-frequency transfer absorbs it in the spectral estimate)
+GAIN_GRID = np.linspace(0.6, 1.4, 17)
 
 
 @dataclass
@@ -158,7 +164,9 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
     for k in np.flatnonzero(steps > 1):  # a step of 1 is no quantisation: not censored
         q = float(steps[k])
         j = np.rint(cr[:, k] / q)
-        ll = _censored_loglik(j, cm[:, k], q, 6.0 * float(np.std(cr[:, k])), VAR_GRID_DN2)
+        spread = 6.0 * float(np.std(cr[:, k]))
+        ll = np.max([_censored_loglik(j, g * cm[:, k], q, spread, VAR_GRID_DN2)
+                     for g in GAIN_GRID], axis=0)
         if low[k]:
             ll_low += ll
         else:
