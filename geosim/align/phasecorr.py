@@ -105,6 +105,9 @@ LANCZOS_A = 8
 #: Smallest window side accepted, in pixels.
 MIN_WINDOW_PX = 32
 
+#: Pixels per strip of :func:`as_grey` (its float32 temporaries: 4 × this × 4 bytes).
+GREY_STRIP_PX = 1 << 16
+
 #: A valid-pixel standard deviation below this (in the image's grey units) counts as flat.
 FLAT_STD = 1e-6
 
@@ -180,11 +183,17 @@ def as_grey(image: np.ndarray, what: str = "image") -> np.ndarray:
     if img.ndim == 2:
         return img.astype(np.float32, copy=False)
     if img.ndim == 3:
-        img = img.astype(np.float32, copy=False)
         if img.shape[0] >= 3:
             wr, wg, wb = (np.float32(w) for w in LUMA_WEIGHTS)  # float32: half the memory
-            return wr * img[0] + wg * img[1] + wb * img[2]
-        return img.mean(axis=0, dtype=np.float32)
+            out = np.empty(img.shape[1:], dtype=np.float32)
+            # a strip of rows at a time: the float32 temporaries stay in the CPU cache
+            # (the same arithmetic per pixel as on the whole image)
+            step = max(1, GREY_STRIP_PX // max(1, img.shape[2]))
+            for r0 in range(0, img.shape[1], step):
+                s = img[:3, r0:r0 + step].astype(np.float32, copy=False)
+                np.add(wr * s[0] + wg * s[1], wb * s[2], out=out[r0:r0 + step])
+            return out
+        return img.astype(np.float32, copy=False).mean(axis=0, dtype=np.float32)
     raise RasterError(f"{what}: expected a (rows, cols) or bands-first (bands, rows, cols) "
                       f"array, got shape {img.shape}; pass one band or a bands-first stack")
 
@@ -287,12 +296,20 @@ def spectral_taper(shape: tuple[int, int]) -> np.ndarray:
 
     Applied to the whitened cross-power spectrum: it keeps the peak sharp but
     stops the highest frequencies — where noise, aliasing and interpolation
-    phase errors live — from biasing the sub-pixel position.
+    phase errors live — from biasing the sub-pixel position. The array is cached
+    (every window of a local shift field has the same shape) and read-only.
     """
+    return _spectral_taper(tuple(int(v) for v in shape))
+
+
+@functools.lru_cache(maxsize=8)
+def _spectral_taper(shape: tuple[int, int]) -> np.ndarray:
     fy = sfft.fftfreq(shape[0]).astype(np.float32)[:, None]
     fx = sfft.fftfreq(shape[1]).astype(np.float32)[None, :]
     f = np.minimum(np.sqrt(fy * fy + fx * fx), np.float32(0.5))
-    return (np.cos(np.float32(np.pi) * f) ** 2).astype(np.float32)
+    out = (np.cos(np.float32(np.pi) * f) ** 2).astype(np.float32)
+    out.flags.writeable = False
+    return out
 
 
 def cross_power(prep_ref: np.ndarray, prep_mov: np.ndarray, *,
@@ -312,7 +329,10 @@ def cross_power(prep_ref: np.ndarray, prep_mov: np.ndarray, *,
     r = fm * np.conj(fr)
     mag = np.abs(r)
     floor = np.float32(1e-12) * (float(mag.max()) if mag.size else 1.0)
-    r = r / np.maximum(mag, floor) ** np.float32(whitening)
+    den = np.maximum(mag, floor)
+    # x ** 0.5 as sqrt: the same float32 values (checked for every positive finite float32
+    # on numpy 2.4 / glibc), 4× faster
+    r = r / (np.sqrt(den) if whitening == 0.5 else den ** np.float32(whitening))
     r *= spectral_taper(r.shape)
     norm = float(np.abs(r).mean(dtype=np.float64))
     if norm > 0:

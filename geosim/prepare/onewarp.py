@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -139,23 +140,9 @@ class ComposedWarp:
         row = inv.d * xs + inv.e * ys + inv.f - 0.5
         return col, row
 
-    def source_coords(self, dst_transform: Affine, shape: tuple[int, int]
-                      ) -> tuple[np.ndarray, np.ndarray]:
-        """Source pixel-centre coordinates of every pixel of a destination window.
-
-        Parameters
-        ----------
-        dst_transform
-            Affine of the window: the site grid's offset by whole pixels.
-        shape
-            ``(rows, cols)`` of the window.
-
-        Returns
-        -------
-        (col, row)
-            float64 arrays ``(rows, cols)``: source column and row of each destination
-            pixel centre (pixel centres at integers); NaN where the projection fails.
-        """
+    def _lattice(self, dst_transform: Affine, shape: tuple[int, int]
+                 ) -> tuple[_Bilinear, _Bilinear]:
+        """The mapping of a destination window as two lattice interpolants (col, row)."""
         g = _aff(self.grid_transform)
         goff = ~g @ (dst_transform.c, dst_transform.f)
         c0, r0 = round(goff[0]), round(goff[1])
@@ -173,21 +160,62 @@ class ComposedWarp:
         x_m = g.a * ncol + g.b * nrow + g.c
         y_m = g.d * ncol + g.e * nrow + g.f
         scol, srow = self._nodes_to_source(x_m, y_m)
-        return _bilinear(scol, uc / lat - kc[0], ur / lat - kr[0]), \
-            _bilinear(srow, uc / lat - kc[0], ur / lat - kr[0])
+        tc, tr = uc / lat - kc[0], ur / lat - kr[0]
+        return _Bilinear.of(scol, tc, tr), _Bilinear.of(srow, tc, tr)
+
+    def source_coords(self, dst_transform: Affine, shape: tuple[int, int]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Source pixel-centre coordinates of every pixel of a destination window.
+
+        Parameters
+        ----------
+        dst_transform
+            Affine of the window: the site grid's offset by whole pixels.
+        shape
+            ``(rows, cols)`` of the window.
+
+        Returns
+        -------
+        (col, row)
+            float64 arrays ``(rows, cols)``: source column and row of each destination
+            pixel centre (pixel centres at integers); NaN where the projection fails.
+        """
+        bc, br = self._lattice(dst_transform, shape)
+        return bc.rows(0, shape[0]), br.rows(0, shape[0])
 
 
-def _bilinear(nodes: np.ndarray, tc: np.ndarray, tr: np.ndarray) -> np.ndarray:
-    """Separable bilinear interpolation of lattice ``nodes`` at fractional node indexes."""
-    ic = np.minimum(np.floor(tc).astype(np.intp), nodes.shape[1] - 2)
-    ir = np.minimum(np.floor(tr).astype(np.intp), nodes.shape[0] - 2)
-    fc, fr = tc - ic, tr - ir
-    along = nodes[:, ic] * (1.0 - fc) + nodes[:, ic + 1] * fc          # (node rows, cols)
-    step = np.diff(along, axis=0)
-    out = step[ir]                                                    # a row gather: a copy
-    out *= fr[:, None]
-    out += along[ir]
-    return out
+@dataclass(frozen=True)
+class _Bilinear:
+    """Separable bilinear interpolation of lattice nodes, evaluated a strip of rows at a time.
+
+    ``along`` holds the nodes interpolated along the columns (node rows × window columns),
+    ``step`` its differences between node rows; a pixel's value is
+    ``along[ir] + fr · step[ir]``: the same arithmetic whichever rows are asked together.
+    """
+
+    along: np.ndarray
+    step: np.ndarray
+    ir: np.ndarray
+    fr: np.ndarray
+    #: Every node finite (then so is every interpolated value).
+    finite: bool
+
+    @classmethod
+    def of(cls, nodes: np.ndarray, tc: np.ndarray, tr: np.ndarray) -> _Bilinear:
+        """Interpolant of ``nodes`` at fractional node indexes ``tc`` (cols), ``tr`` (rows)."""
+        ic = np.minimum(np.floor(tc).astype(np.intp), nodes.shape[1] - 2)
+        ir = np.minimum(np.floor(tr).astype(np.intp), nodes.shape[0] - 2)
+        fc, fr = tc - ic, tr - ir
+        along = nodes[:, ic] * (1.0 - fc) + nodes[:, ic + 1] * fc      # (node rows, cols)
+        return cls(along, np.diff(along, axis=0), ir, fr, bool(np.isfinite(nodes).all()))
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """float64 values of the window rows ``start:stop`` (every column)."""
+        ir = self.ir[start:stop]
+        out = self.step[ir]                                           # a row gather: a copy
+        out *= self.fr[start:stop, None]
+        out += self.along[ir]
+        return out
 
 
 # --------------------------------------------------------------------------- pure kernel
@@ -220,7 +248,8 @@ def remap_window(image: np.ndarray, valid: np.ndarray, col: np.ndarray, row: np.
     Parameters
     ----------
     image
-        ``(bands, rows, cols)`` source block, any real dtype.
+        ``(bands, rows, cols)`` source block, any real dtype. Its invalid pixels are
+        set to 0 in place when it is contiguous in a type OpenCV remaps.
     valid
         ``(rows, cols)`` bool source mask.
     col, row
@@ -233,15 +262,22 @@ def remap_window(image: np.ndarray, valid: np.ndarray, col: np.ndarray, row: np.
         Output in the input dtype (integers rounded and saturated; 0 where invalid) and
         a conservative mask (every source pixel under the 4×4 kernel valid).
     """
-    m1, m2 = _fixed_maps(col, row)
+    return remap_fixed(image, valid, *_fixed_maps(col, row))
+
+
+def remap_fixed(image: np.ndarray, valid: np.ndarray, m1: np.ndarray, m2: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`remap_window` with OpenCV's fixed-point maps (``CV_16SC2`` + ``CV_16UC1``)."""
     dtype = image.dtype
     work = dtype if dtype.name in _CV_DTYPES else np.dtype(np.float64)
-    out = np.empty((image.shape[0], *col.shape), dtype=work)
+    out = np.empty((image.shape[0], *m2.shape), dtype=work)
+    invalid = None if valid.all() else ~valid
     for b in range(image.shape[0]):
         src = np.ascontiguousarray(image[b], dtype=work)
-        src[~valid] = 0
-        out[b] = cv2.remap(src, m1, m2, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT,
-                           borderValue=0)
+        if invalid is not None:
+            src[invalid] = 0
+        cv2.remap(src, m1, m2, cv2.INTER_CUBIC, dst=out[b], borderMode=cv2.BORDER_CONSTANT,
+                  borderValue=0)
     ok = _remap_mask(valid, m1, m2)
     if work != dtype:
         info = np.iinfo(dtype)
@@ -259,10 +295,16 @@ def source_window(col: np.ndarray, row: np.ndarray, width: int, height: int,
     fin = np.isfinite(col) & np.isfinite(row)
     if not fin.any():
         return None
-    c0 = max(0, math.floor(float(col[fin].min())) - pad_px)
-    r0 = max(0, math.floor(float(row[fin].min())) - pad_px)
-    c1 = min(width, math.ceil(float(col[fin].max())) + pad_px + 1)
-    r1 = min(height, math.ceil(float(row[fin].max())) + pad_px + 1)
+    return _padded_window(float(col[fin].min()), float(col[fin].max()),
+                          float(row[fin].min()), float(row[fin].max()), width, height, pad_px)
+
+
+def _padded_window(col_min: float, col_max: float, row_min: float, row_max: float,
+                   width: int, height: int, pad_px: int = PAD_PX) -> Window | None:
+    c0 = max(0, math.floor(col_min) - pad_px)
+    r0 = max(0, math.floor(row_min) - pad_px)
+    c1 = min(width, math.ceil(col_max) + pad_px + 1)
+    r1 = min(height, math.ceil(row_max) + pad_px + 1)
     if c1 <= c0 or r1 <= r0:
         return None
     return Window(c0, r0, c1 - c0, r1 - r0)
@@ -286,6 +328,86 @@ def _window_coords(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, 
         a *= 1.0 / SUBPIXEL
         maps.append(a.astype(np.float32))
     return swin, maps[0], maps[1]
+
+
+#: Destination rows per strip of :func:`_window_maps`: its float64 temporaries (2 × 32 rows
+#: × the window's columns) stay in the CPU's cache instead of streaming through memory.
+STRIP_ROWS = 32
+#: Largest |source coordinate| (px) of the strip path: quantised, it fits an int32 and, window
+#: relative, a float32 exactly (beyond it the whole-window path :func:`_window_coords` runs).
+_STRIP_MAX_PX = 2.0 ** 18
+
+
+def _window_maps(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int],
+                 src: rasterio.DatasetReader
+                 ) -> tuple[Window, np.ndarray, np.ndarray] | None:
+    """Source window and OpenCV's fixed-point maps of a destination window.
+
+    The same window and maps as :func:`_window_coords` followed by :func:`_fixed_maps`
+    (tested bit for bit), computed a strip of rows at a time: the coordinates are
+    evaluated, bounded and quantised to 1/32 px per strip (``int32``), and the maps made
+    from the integers as ``cv2.convertMaps`` does (``m1 = q >> 5``, ``m2 = (qy & 31) · 32 +
+    (qx & 31)``), with no whole-window float64 or float32 coordinate array.
+    """
+    h, w = shape
+    bc, br = warp._lattice(dst_transform, shape)
+    finite = bc.finite and br.finite
+    qc, qr = np.empty(shape, np.int32), np.empty(shape, np.int32)
+    bad = None if finite else np.zeros(shape, dtype=bool)
+    lo_c = lo_r = math.inf
+    hi_c = hi_r = -math.inf
+    for a in range(0, h, STRIP_ROWS):
+        b = min(h, a + STRIP_ROWS)
+        c, r = bc.rows(a, b), br.rows(a, b)
+        if finite:
+            ok = None
+        else:
+            ok = np.isfinite(c) & np.isfinite(r)
+            bad[a:b] = ~ok
+            if not ok.any():
+                continue
+        lo, hi = (c.min(), c.max()) if ok is None else (c[ok].min(), c[ok].max())
+        lo_c, hi_c = min(lo_c, float(lo)), max(hi_c, float(hi))
+        lo, hi = (r.min(), r.max()) if ok is None else (r[ok].min(), r[ok].max())
+        lo_r, hi_r = min(lo_r, float(lo)), max(hi_r, float(hi))
+        if max(-lo_c, hi_c, -lo_r, hi_r) >= _STRIP_MAX_PX:
+            found = _window_coords(warp, dst_transform, shape, src)
+            return None if found is None else (found[0], *_fixed_maps(found[1], found[2]))
+        for v, q in ((c, qc), (r, qr)):
+            if ok is not None:
+                v[~ok] = 0.0                     # placeholders: replaced below
+            v *= SUBPIXEL
+            np.rint(v, out=v)
+            q[a:b] = v
+    if lo_c > hi_c:
+        return None
+    swin = _padded_window(lo_c, hi_c, lo_r, hi_r, src.width, src.height)
+    if swin is None:
+        return None
+    # window-relative whole pixels saturate to int16 in cv2.convertMaps; here they fit
+    # (the window spans the coordinates), so no clipping is needed: checked, not assumed
+    span = max(hi_c - swin.col_off, hi_r - swin.row_off, swin.col_off - lo_c,
+               swin.row_off - lo_r, 16.0)
+    if span >= 32767 or sys.byteorder != "little":
+        found = _window_coords(warp, dst_transform, shape, src)
+        return None if found is None else (found[0], *_fixed_maps(found[1], found[2]))
+    m1 = np.empty((h, w, 2), np.int16)
+    pairs = m1.view(np.int32)[..., 0]            # (x, y) int16 pairs as one little-endian int32
+    m2 = np.empty(shape, np.uint16)
+    for a in range(0, h, STRIP_ROWS):
+        b = min(h, a + STRIP_ROWS)
+        ix = qc[a:b] - np.int32(swin.col_off * SUBPIXEL)
+        iy = qr[a:b] - np.int32(swin.row_off * SUBPIXEL)
+        if bad is not None:                     # outside: (-16, -16) px, as _fixed_maps
+            ix[bad[a:b]] = iy[bad[a:b]] = -16 * SUBPIXEL
+        m2[a:b] = ((iy & (SUBPIXEL - 1)) * SUBPIXEL) | (ix & (SUBPIXEL - 1))
+        ix >>= 5
+        ix &= 0xFFFF
+        iy >>= 5
+        iy <<= 16
+        iy |= ix
+        pairs[a:b] = iy
+    return swin, m1, m2
 
 
 def read_warped(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int], *,
@@ -313,24 +435,24 @@ def read_warped(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int
         with rasterio.open(warp.src_path) as ds:
             return read_warped(warp, dst_transform, shape, src=ds, bands=bands)
     bands = bands or image_band_indexes(src)
-    found = _window_coords(warp, dst_transform, shape, src)
+    found = _window_maps(warp, dst_transform, shape, src)
     if found is None:
         return (np.zeros((len(bands), *shape), dtype=src.dtypes[bands[0] - 1]),
                 np.zeros(shape, dtype=bool))
-    swin, mx, my = found
+    swin, m1, m2 = found
     image = src.read(bands, window=swin)
     valid = read_valid_mask(src, window=swin)
-    return remap_window(image, valid, mx, my)
+    return remap_fixed(image, valid, m1, m2)
 
 
 def read_warped_valid(warp: ComposedWarp, dst_transform: Affine, shape: tuple[int, int], *,
                       src: rasterio.DatasetReader) -> np.ndarray:
     """The mask :func:`read_warped` gives for a window, without resampling the image."""
-    found = _window_coords(warp, dst_transform, shape, src)
+    found = _window_maps(warp, dst_transform, shape, src)
     if found is None:
         return np.zeros(shape, dtype=bool)
-    swin, mx, my = found
-    return _remap_mask(read_valid_mask(src, window=swin), *_fixed_maps(mx, my))
+    swin, m1, m2 = found
+    return _remap_mask(read_valid_mask(src, window=swin), m1, m2)
 
 
 @dataclass(frozen=True)
