@@ -348,3 +348,40 @@ def test_no_confident_window_summary_is_json_safe() -> None:
     s = f.summary()
     assert s["n_confident"] == 0 and s["median_px"] is None and s["max_px"] is None
     assert not math.isnan(float(f.confidence.max()))
+
+
+def test_as_grey_in_strips_is_bt601_luma_in_float32(monkeypatch):
+    """as_grey's strips give BT.601 luma (float64 oracle, to float32 rounding) and the
+    same bits whatever the strip height (uint8 RGBA and float RGB)."""
+    from geosim.align import phasecorr as pc
+
+    rng = np.random.default_rng(3)
+    for img in (rng.integers(0, 256, (4, 37, 29), dtype=np.uint8),
+                rng.normal(100, 30, (3, 41, 23))):
+        oracle = 0.299 * img[0].astype(np.float64) + 0.587 * img[1] + 0.114 * img[2]
+        outs = []
+        for strip_px in (1, 29 * 5, 1 << 16):
+            monkeypatch.setattr(pc, "GREY_STRIP_PX", strip_px)
+            g = pc.as_grey(img)
+            assert g.dtype == np.float32 and g.shape == img.shape[1:]
+            np.testing.assert_allclose(g, oracle, rtol=2e-6, atol=1e-4)
+            outs.append(g)
+        assert all(np.array_equal(outs[0], o) for o in outs[1:])
+
+
+def test_cross_power_sqrt_whitening_equals_power():
+    """The default whitening (0.5) takes sqrt; the spectrum equals the |X| ** 0.5 form and
+    the cached taper is read-only."""
+    from geosim.align import phasecorr as pc
+
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(64, 48)).astype(np.float32)
+    b = np.roll(a, (3, -2), axis=(0, 1))
+    r = pc.cross_power(a, b)
+    fr, fm = np.fft.fft2(a), np.fft.fft2(b)
+    x = fm * np.conj(fr)
+    mag = np.abs(x)
+    ref = x / np.maximum(mag, 1e-12 * mag.max()) ** 0.5 * pc.spectral_taper((64, 48))
+    ref /= np.abs(ref).mean()
+    np.testing.assert_allclose(r, ref, rtol=1e-4, atol=1e-5)
+    assert not pc.spectral_taper((64, 48)).flags.writeable

@@ -181,3 +181,68 @@ def test_thread_count_does_not_change_the_file(tmp_path, monkeypatch):
                                             block_px=128))
         digests.append(hashlib.sha256(path.read_bytes()).hexdigest())
     assert digests[0] == digests[1]
+
+
+def _whole_window_maps(warp, t, shape, src):
+    """The former path: whole-window float coordinates, then cv2.convertMaps."""
+    from geosim.prepare.onewarp import _fixed_maps, _window_coords
+
+    found = _window_coords(warp, t, shape, src)
+    return None if found is None else (found[0], *_fixed_maps(found[1], found[2]))
+
+
+def _holes(x_m, y_m):
+    """A field that cannot be evaluated at some nodes (NaN), elsewhere a small shift."""
+    x, y = x_m + 0.013, y_m - 0.021
+    hole = ((x_m - X0) // 0.8 + (Y0 - y_m) // 0.8) % 7 == 0
+    return np.where(hole, np.nan, x), np.where(hole, np.nan, y)
+
+
+@pytest.mark.parametrize("field", [None, _holes])
+@pytest.mark.parametrize("rotation_deg", [0.0, 0.7])
+def test_strip_maps_equal_whole_window_maps(tmp_path, monkeypatch, field, rotation_deg):
+    """The strip-wise coordinates and fixed-point maps are, bit for bit, OpenCV's
+    convertMaps of the whole-window float32 coordinates (another CRS, rotation, a field
+    with NaN nodes, windows inside, across the edge of and outside the flight, strips
+    that do not divide the window)."""
+    from geosim.prepare import onewarp
+
+    _flight(tmp_path / "f.tif")
+    c = _rotation(rotation_deg, X0 + 8, Y0 - 8)
+    w = ComposedWarp.for_flight(tmp_path / "f.tif", SITE, GRID, aligned_to_stated=~c,
+                                field=field)
+    monkeypatch.setattr(onewarp, "STRIP_ROWS", 7)
+    seen_nan = False
+    with rasterio.open(tmp_path / "f.tif") as src:
+        for r0, c0, h, wd in [(0, 0, 64, 64), (-30, -40, 120, 90), (300, 350, 200, 150),
+                              (10, 10, 1, 1), (5000, 5000, 20, 20), (33, 17, 129, 257)]:
+            t = GRID @ Affine.translation(c0, r0)
+            old = _whole_window_maps(w, t, (h, wd), src)
+            new = onewarp._window_maps(w, t, (h, wd), src)
+            assert (old is None) == (new is None)
+            if old is None:
+                continue
+            assert old[0] == new[0]
+            assert np.array_equal(old[1], new[1]) and np.array_equal(old[2], new[2])
+            seen_nan |= bool(np.isnan(w.source_coords(t, (h, wd))[0]).any())
+    assert seen_nan == (field is not None)
+
+
+def test_strip_maps_fall_back_beyond_their_range(tmp_path, monkeypatch):
+    """Coordinates too large for the int32 strip path take the whole-window path (same
+    maps)."""
+    from geosim.prepare import onewarp
+
+    _flight(tmp_path / "f.tif")
+    w = ComposedWarp.for_flight(tmp_path / "f.tif", SITE, GRID)
+    calls = []
+    real = onewarp._window_coords
+    monkeypatch.setattr(onewarp, "_window_coords", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(onewarp, "_STRIP_MAX_PX", 100.0)
+    with rasterio.open(tmp_path / "f.tif") as src:
+        t = GRID @ Affine.translation(150, 150)
+        new = onewarp._window_maps(w, t, (60, 60), src)
+        assert calls
+        monkeypatch.setattr(onewarp, "_STRIP_MAX_PX", 2.0 ** 18)
+        old = _whole_window_maps(w, t, (60, 60), src)
+    assert old[0] == new[0] and np.array_equal(old[1], new[1]) and np.array_equal(old[2], new[2])
