@@ -9,9 +9,11 @@ at that window, in pixels, ``dx`` along columns and ``dy`` along rows (down).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft as sfft
 from tqdm import tqdm
 
 from geosim.align.phasecorr import (
@@ -24,7 +26,7 @@ from geosim.align.phasecorr import (
 )
 from geosim.errors import AlignmentError, GeosimError, RasterError
 
-__all__ = ["LocalShiftField", "local_shift_field", "window_starts"]
+__all__ = ["LocalShiftField", "local_shift_field", "local_shift_fields", "window_starts"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,10 +111,26 @@ def shifts_in_windows(ref: np.ndarray, mov: np.ndarray, valid_ref: np.ndarray,
     Returns ``(dx_px, dy_px, confidence)`` arrays of shape ``(len(starts_r), len(starts_c))``;
     unmeasurable windows get NaN shifts and confidence 0.
     """
+    return shifts_in_windows_many(ref, [(mov, valid_ref, valid_mov)], starts_r, starts_c,
+                                  window_px, upsample_factor=upsample_factor,
+                                  min_valid_fraction=min_valid_fraction, progress=progress)[0]
+
+
+def shifts_in_windows_many(ref: np.ndarray,
+                           movs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                           starts_r: np.ndarray, starts_c: np.ndarray, window_px: int, *,
+                           upsample_factor: int, min_valid_fraction: float,
+                           progress: bool = False
+                           ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`shifts_in_windows` of several moving images against one reference, window
+    by window; ``movs`` holds ``(moving, valid_ref, valid_mov)`` per image.
+
+    Each window of the reference is prepared and transformed once for every moving image
+    whose window has the same valid pixels (re-prepared otherwise), while it is still in
+    the CPU's cache: the same numbers as one :func:`shifts_in_windows` per image.
+    """
     shape = (len(starts_r), len(starts_c))
-    dx = np.full(shape, np.nan)
-    dy = np.full(shape, np.nan)
-    conf = np.zeros(shape)
+    out = [(np.full(shape, np.nan), np.full(shape, np.nan), np.zeros(shape)) for _ in movs]
     apod = window_2d((window_px, window_px), "hann")
     feather_px = max(4.0, window_px / 16.0)
     jobs = [(i, j) for i in range(shape[0]) for j in range(shape[1])]
@@ -120,18 +138,30 @@ def shifts_in_windows(ref: np.ndarray, mov: np.ndarray, valid_ref: np.ndarray,
                      leave=False):
         r0, c0 = int(starts_r[i]), int(starts_c[j])
         sl = (slice(r0, r0 + window_px), slice(c0, c0 + window_px))
-        vr, vm = valid_ref[sl], valid_mov[sl]
-        if min(vr.mean(), vm.mean()) < min_valid_fraction:
-            continue
-        try:
-            pr, wr = prepare(ref[sl], vr, apod, feather_px=feather_px, what="window")
-            pm, wm = prepare(mov[sl], vm, apod, feather_px=feather_px, what="window")
-        except GeosimError:
-            continue  # flat window
-        pc = correlate_prepared(pr, pm, wr, wm, upsample_factor=upsample_factor)
-        dx[i, j], dy[i, j] = pc.shift_px
-        conf[i, j] = pc.confidence
-    return dx, dy, conf
+        prepared: tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray] | None] | None
+        prepared = None                          # (its valid window, (image, weight, FFT))
+        for (mov, valid_ref, valid_mov), (dx, dy, conf) in zip(movs, out, strict=True):
+            vr, vm = valid_ref[sl], valid_mov[sl]
+            if min(vr.mean(), vm.mean()) < min_valid_fraction:
+                continue
+            if prepared is None or not np.array_equal(prepared[0], vr):
+                try:
+                    pr, wr = prepare(ref[sl], vr, apod, feather_px=feather_px, what="window")
+                    prepared = (vr, (pr, wr, sfft.fft2(pr)))
+                except GeosimError:
+                    prepared = (vr, None)            # flat window
+            if prepared[1] is None:
+                continue
+            pr, wr, fr = prepared[1]
+            try:
+                pm, wm = prepare(mov[sl], vm, apod, feather_px=feather_px, what="window")
+            except GeosimError:
+                continue  # flat window
+            pc = correlate_prepared(pr, pm, wr, wm, upsample_factor=upsample_factor,
+                                    fft_ref=fr)
+            dx[i, j], dy[i, j] = pc.shift_px
+            conf[i, j] = pc.confidence
+    return out
 
 
 def local_shift_field(reference: np.ndarray, moving: np.ndarray, *,
@@ -178,11 +208,25 @@ def local_shift_field(reference: np.ndarray, moving: np.ndarray, *,
     AlignmentError
         The image is smaller than one window, or ``window_px`` < 32.
     """
+    return local_shift_fields(reference, [(moving, valid)], window_px=window_px,
+                              step_px=step_px, min_confidence=min_confidence,
+                              upsample_factor=upsample_factor,
+                              min_valid_fraction=min_valid_fraction, progress=progress)[0]
+
+
+def local_shift_fields(reference: np.ndarray,
+                       movings: Sequence[tuple[np.ndarray, np.ndarray | None]], *,
+                       window_px: int = 256, step_px: int = 256,
+                       min_confidence: float = DEFAULT_MIN_CONFIDENCE,
+                       upsample_factor: int = 20, min_valid_fraction: float = 0.5,
+                       progress: bool = False) -> list[LocalShiftField]:
+    """:func:`local_shift_field` of several ``(moving, valid)`` images against one reference.
+
+    The same fields as one :func:`local_shift_field` per image; each reference window is
+    prepared once for the images that share its valid pixels
+    (:func:`shifts_in_windows_many`).
+    """
     ref = as_grey(reference, "reference")
-    mov = as_grey(moving, "moving")
-    if ref.shape != mov.shape:
-        raise RasterError(f"reference {ref.shape} and moving {mov.shape} images differ in shape; "
-                          "resample both onto the same grid first")
     window_px, step_px = int(window_px), int(step_px)
     if window_px < MIN_WINDOW_PX or step_px < 1:
         raise AlignmentError(f"window_px={window_px}, step_px={step_px}: windows must be at least "
@@ -190,20 +234,30 @@ def local_shift_field(reference: np.ndarray, moving: np.ndarray, *,
     if window_px > min(ref.shape):
         raise AlignmentError(f"window_px={window_px} is larger than the image "
                              f"({ref.shape[0]}×{ref.shape[1]} px); use a smaller window")
-    both = np.isfinite(ref) & np.isfinite(mov)
-    if valid is not None:
-        v = np.asarray(valid, dtype=bool)
-        if v.shape != ref.shape:
-            raise RasterError(f"valid mask shape {v.shape} does not match the images {ref.shape}")
-        both &= v
+    jobs = []
+    for moving, valid in movings:
+        mov = as_grey(moving, "moving")
+        if ref.shape != mov.shape:
+            raise RasterError(f"reference {ref.shape} and moving {mov.shape} images differ in "
+                              "shape; resample both onto the same grid first")
+        both = np.isfinite(ref) & np.isfinite(mov)
+        if valid is not None:
+            v = np.asarray(valid, dtype=bool)
+            if v.shape != ref.shape:
+                raise RasterError(f"valid mask shape {v.shape} does not match the images "
+                                  f"{ref.shape}")
+            both &= v
+        jobs.append((mov, both, both))
     starts_r = window_starts(ref.shape[0], window_px, step_px)
     starts_c = window_starts(ref.shape[1], window_px, step_px)
-    dx, dy, conf = shifts_in_windows(ref, mov, both, both, starts_r, starts_c, window_px,
-                                     upsample_factor=int(upsample_factor),
-                                     min_valid_fraction=min_valid_fraction, progress=progress)
+    measured = shifts_in_windows_many(ref, jobs, starts_r, starts_c, window_px,
+                                      upsample_factor=int(upsample_factor),
+                                      min_valid_fraction=min_valid_fraction, progress=progress)
     half = (window_px - 1) / 2.0
-    centres = np.stack(np.meshgrid(starts_r + half, starts_c + half, indexing="ij"), axis=-1)
-    ok = np.isfinite(dx) & (conf >= min_confidence)
-    return LocalShiftField(centres=centres.astype(float), dx_px=dx, dy_px=dy, confidence=conf,
-                           valid=ok, window_px=window_px, step_px=step_px,
-                           min_confidence=float(min_confidence))
+    centres = np.stack(np.meshgrid(starts_r + half, starts_c + half, indexing="ij"),
+                       axis=-1).astype(float)
+    return [LocalShiftField(centres=centres.copy(), dx_px=dx, dy_px=dy, confidence=conf,
+                            valid=np.isfinite(dx) & (conf >= min_confidence),
+                            window_px=window_px, step_px=step_px,
+                            min_confidence=float(min_confidence))
+            for dx, dy, conf in measured]

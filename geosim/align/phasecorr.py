@@ -313,18 +313,21 @@ def _spectral_taper(shape: tuple[int, int]) -> np.ndarray:
 
 
 def cross_power(prep_ref: np.ndarray, prep_mov: np.ndarray, *,
-                whitening: float = WHITENING_EXPONENT) -> np.ndarray:
+                whitening: float = WHITENING_EXPONENT,
+                fft_ref: np.ndarray | None = None) -> np.ndarray:
     """Whitened, tapered cross-power spectrum (complex64, FFT layout).
 
     ``X = F_mov · conj(F_ref)``, divided by ``|X| ** whitening`` (default
     :data:`WHITENING_EXPONENT`; 1 is classical phase correlation), times
     :func:`spectral_taper`, then scaled so that its mean modulus is 1 (a perfect
     circular match then gives a surface peak of exactly 1). Its inverse FFT peaks
-    at the position of the moving content relative to the reference.
+    at the position of the moving content relative to the reference. ``fft_ref``:
+    ``scipy.fft.fft2(prep_ref)`` when already computed (a reference window correlated
+    with several images).
     """
     if not 0.0 <= whitening <= 1.0:
         raise ValueError(f"whitening must be in [0, 1], got {whitening}")
-    fr = sfft.fft2(prep_ref)
+    fr = sfft.fft2(prep_ref) if fft_ref is None else fft_ref
     fm = sfft.fft2(prep_mov)
     r = fm * np.conj(fr)
     mag = np.abs(r)
@@ -521,14 +524,15 @@ def top_peaks(surface: np.ndarray, k: int, *, allowed: np.ndarray | None = None,
 def correlate_prepared(prep_ref: np.ndarray, prep_mov: np.ndarray, weight_ref: np.ndarray,
                        weight_mov: np.ndarray, *, upsample_factor: int,
                        allowed: np.ndarray | None = None, exclusion_px: float = 6.0,
-                       whitening: float = WHITENING_EXPONENT) -> PhaseCorrelation:
+                       whitening: float = WHITENING_EXPONENT,
+                       fft_ref: np.ndarray | None = None) -> PhaseCorrelation:
     """Phase-correlate two images prepared by :func:`prepare` (with their weights).
 
     ``allowed`` optionally restricts the peak search to a boolean mask of the
     surface (FFT layout: index ``(i, j)`` is shift ``(dx, dy) = (j, i)`` modulo the shape);
-    ``whitening`` is the exponent of :func:`cross_power`.
+    ``whitening`` and ``fft_ref`` are those of :func:`cross_power`.
     """
-    r = cross_power(prep_ref, prep_mov, whitening=whitening)
+    r = cross_power(prep_ref, prep_mov, whitening=whitening, fft_ref=fft_ref)
     surface = sfft.ifft2(r).real
     env = noise_envelope(weight_ref, weight_mov)
     usable = env >= ENVELOPE_MIN

@@ -523,18 +523,22 @@ class LocalCheckTask:
 
 def local_check_task(task: LocalCheckTask) -> dict[str, list[dict[str, Any]]]:
     """Run a :class:`LocalCheckTask`: the reference block is read once for all flights."""
-    from geosim.align.local import local_shift_field
+    from geosim.align.local import local_shift_fields
 
     blk = task.block
     rg, rv = _grey_source(task.ref)(blk)
-    out: dict[str, list[dict[str, Any]]] = {}
+    out: dict[str, list[dict[str, Any]]] = {fid: [] for fid, _ in task.movs}
+    measured = []
     for fid, mov in task.movs:
         mg, mv = _grey_source(mov)(blk)
-        out[fid] = []
-        if not (rv & mv).any():
-            continue
-        field = local_shift_field(rg, mg, valid=rv & mv, window_px=task.window_px,
-                                  step_px=task.window_px, min_confidence=task.min_confidence)
+        if (rv & mv).any():
+            measured.append((fid, (mg, rv & mv)))
+    if not measured:
+        return out
+    # every flight in one pass over the windows: each reference window prepared once
+    fields = local_shift_fields(rg, [m for _, m in measured], window_px=task.window_px,
+                                step_px=task.window_px, min_confidence=task.min_confidence)
+    for (fid, _), field in zip(measured, fields, strict=True):
         for rec in _field_records(field):
             rec["col"] += blk.col_off
             rec["row"] += blk.row_off
