@@ -341,6 +341,31 @@ def test_local_shift_field_flags_flat_and_invalid_windows() -> None:
         local_shift_field(ref, mov, window_px=512)
 
 
+def test_local_shift_fields_of_several_flights_equal_one_at_a_time() -> None:
+    """Several moving images in one pass (the reference window prepared once for those
+    sharing its valid pixels) give the same fields, bit for bit, as one call per image:
+    known shifts recovered, a flight with its own nodata (re-prepared reference), a flat
+    corner and a flight with no valid pixel in a window."""
+    from geosim.align.local import local_shift_fields
+
+    ref = texture((384, 384), seed=17)
+    ref[:128, :128] = 50.0                                   # flat in the reference
+    movs = [(np.roll(ref, 2, axis=1), None),
+            (np.roll(ref, -3, axis=0), np.ones(ref.shape, bool)),
+            (np.roll(ref, (1, 1), axis=(0, 1)), np.ones(ref.shape, bool))]
+    movs[1][1][200:, 200:] = False                            # its own nodata
+    movs[2][1][:, :200] = False
+    many = local_shift_fields(ref, movs, window_px=128, step_px=96)
+    for (mov, valid), got in zip(movs, many, strict=True):
+        one = local_shift_field(ref, mov, valid=valid, window_px=128, step_px=96)
+        for name in ("centres", "dx_px", "dy_px", "confidence", "valid"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(one, name))
+    np.testing.assert_allclose(many[0].dx_px[many[0].valid], 2.0, atol=0.05)
+    np.testing.assert_allclose(many[1].dy_px[many[1].valid], -3.0, atol=0.05)
+    assert not many[1].valid[-1, -1] and many[0].valid[-1, -1]
+    assert not many[2].valid[:, 0].any() and many[2].valid[:, -1].all()
+
+
 def test_no_confident_window_summary_is_json_safe() -> None:
     rng = np.random.default_rng(16)
     f = local_shift_field(rng.normal(size=(128, 128)), rng.normal(size=(128, 128)),
