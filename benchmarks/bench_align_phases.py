@@ -36,8 +36,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: Phases: (label, file suffix, function, direct caller's function or None). With a caller,
-#: only the time of the calls made directly from that function counts.
+#: Phases: (label, file suffix, function (``a|b``: either; the names of this version and
+#: of the one before the memory-traffic work), direct caller's function or None). With a
+#: caller, only the time of the calls made directly from that function counts.
 PHASES = (
     ("preflight read (check_rasters)", "validate.py", "check_rasters", None),
     ("footprints (per-flight tasks)", "steps.py", "footprint_task", None),
@@ -49,10 +50,11 @@ PHASES = (
     ("  local check tasks", "alignment.py", "local_check_task", None),
     ("    reading every flight's block through its warp", "onewarp.py", "__call__",
      "local_check_task"),
-    ("    local_shift_field", "local.py", "local_shift_field", "local_check_task"),
+    ("    phase correlation of the windows", "local.py", "local_shift_field|local_shift_fields",
+     "local_check_task"),
     ("any: source decode (rasterio read, read_masks)", "bench_align_phases.py", "read*", None),
-    ("any: remap_window (bicubic, mask)", "onewarp.py", "remap_window", None),
-    ("any: warp coordinates (_window_coords)", "onewarp.py", "_window_coords", None),
+    ("any: bicubic remap and mask", "onewarp.py", "remap_window|remap_fixed", None),
+    ("any: warp coordinates and maps", "onewarp.py", "_window_coords|_window_maps", None),
     ("any: as_grey", "phasecorr.py", "as_grey", None),
     ("any: phasecorr prepare", "phasecorr.py", "prepare", None),
     ("any: correlate_prepared", "phasecorr.py", "correlate_prepared", None),
@@ -108,7 +110,7 @@ def phase_seconds(prof_path: str) -> dict[str, float]:
     out: dict[str, float] = {}
     for label, file, fn, caller in PHASES:
         def match(k: tuple, fn: str = fn, file: str = file) -> bool:
-            name_ok = k[2].startswith(fn[:-1]) if fn.endswith("*") else k[2] == fn
+            name_ok = k[2].startswith(fn[:-1]) if fn.endswith("*") else k[2] in fn.split("|")
             return name_ok and k[0].endswith(file)
         keys = [k for k in stats if match(k)]
         if caller is None:

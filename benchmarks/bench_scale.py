@@ -33,6 +33,7 @@ Usage::
     python benchmarks/bench_scale.py --size 6000 --tile-px 2000   # a smaller run
     python benchmarks/bench_scale.py --workers 1                  # one process only
     python benchmarks/bench_scale.py --workers 1t,1,2             # also one thread in-process
+    python benchmarks/bench_scale.py --steps grid,footprints,align  # only the first steps
 
 ``1t`` runs in this process on one thread (``GEOSIM_THREADS=1``), like one single-threaded
 worker without Dask: the baseline of pure multi-process scaling (``1`` uses every core for
@@ -351,14 +352,14 @@ def run_gdalwarp(flights: list[Path], out_dir: Path, grid: dict) -> dict:
                        "-wo NUM_THREADS=ALL_CPUS -co TILED=YES -co COMPRESS=DEFLATE"}
 
 
-def run_steps(site_file: Path, out: Path, workers: str, size: int, tile_px: int
-              ) -> list[dict]:
-    """Every step, each in its own child process, on ``workers`` (a count, or ``1t``: in
-    this process on one thread); one record per step."""
+def run_steps(site_file: Path, out: Path, workers: str, size: int, tile_px: int,
+              steps: tuple[str, ...] = STEPS) -> list[dict]:
+    """Every step of ``steps``, each in its own child process, on ``workers`` (a count, or
+    ``1t``: in this process on one thread); one record per step."""
     flight_mp = 3 * size * size / 1e6
     rows = []
     env = {**os.environ, **({"GEOSIM_THREADS": "1"} if workers.endswith("t") else {})}
-    for step in STEPS:
+    for step in steps:
         before = _dir_bytes(out) if out.is_dir() else {}
         cmd = [sys.executable, __file__, "--child", step, "--site", str(site_file),
                "--run", str(out), "--workers", workers.rstrip("t")]
@@ -395,7 +396,8 @@ def _same_outputs(a: Path, b: Path) -> bool:
 
 
 def run(size: int, tile_px: int, workers: list[str], keep: bool,
-        site_cache: Path | None = None, gdalwarp: bool = True) -> dict:
+        site_cache: Path | None = None, gdalwarp: bool = True,
+        steps: tuple[str, ...] = STEPS) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="geosim-scale-"))
     try:
         t0 = time.perf_counter()
@@ -405,7 +407,7 @@ def run(size: int, tile_px: int, workers: list[str], keep: bool,
               f"{make_s:.1f} s", flush=True)
         rows: list[dict] = []
         for w in workers:
-            rows += run_steps(site_file, tmp / f"run_w{w}", w, size, tile_px)
+            rows += run_steps(site_file, tmp / f"run_w{w}", w, size, tile_px, steps)
         out = tmp / f"run_w{workers[0]}"
         grid = json.loads((out / "grid" / "grid.json").read_text())
         from geosim.config import load_site
@@ -413,10 +415,10 @@ def run(size: int, tile_px: int, workers: list[str], keep: bool,
         flights = [f.image for f in load_site(site_file).flights]
         gw = (run_gdalwarp(flights, tmp / "gdalwarp", grid) if gdalwarp
               else {"skipped": "--no-gdalwarp"})
-        print(f"gdalwarp: {gw}", flush=True)
         n_tiles = len(list((out / "tiles").glob("*/*.tif")))
+        print(f"gdalwarp: {gw}", flush=True)
         same = (all(_same_outputs(out, tmp / f"run_w{w}") for w in workers[1:])
-                if len(workers) > 1 else None)
+                if len(workers) > 1 and n_tiles else None)
         doc = summarise(rows, gw, size, tile_px, n_tiles, imagery, make_s, workers, same)
         doc["site_reused_from_cache"] = reused
     finally:
@@ -444,25 +446,28 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
                           default=None)},
         "outputs_identical_across_workers": same,
     }
-    prepare = {w: round(sum(by[(w, s)]["seconds"] for s in ("grid", "align", "tiles")), 2)
-               for w in workers}
+    run_steps_ = [s for s in STEPS if (workers[0], s) in by]
+    doc["steps_run"] = run_steps_
+    prepare = ({w: round(sum(by[(w, s)]["seconds"] for s in ("grid", "align", "tiles")), 2)
+                for w in workers} if {"grid", "align", "tiles"} <= set(run_steps_) else {})
     doc["prepare_resample_once_s"] = prepare
-    if "seconds" in gw:
+    if "seconds" in gw and prepare:
         doc["prepare_vs_gdalwarp"] = {w: round(v / gw["seconds"], 2) for w, v in prepare.items()}
     if len(workers) > 1:
         # against the default in-process run ("1") when there is one; "1t" apart below
         w1, wn = ("1" if "1" in workers[:-1] else workers[0]), workers[-1]
         doc["speedup"] = {s: round(by[(w1, s)]["seconds"] / by[(wn, s)]["seconds"], 2)
-                          for s in STEPS}
+                          for s in run_steps_}
         doc["speedup_of"] = f"{wn} workers vs {w1}"
         if "1t" in workers and wn != "1t":  # pure multi-process scaling
             doc["speedup_vs_one_thread"] = {
-                s: round(by[("1t", s)]["seconds"] / by[(wn, s)]["seconds"], 2) for s in STEPS}
+                s: round(by[("1t", s)]["seconds"] / by[(wn, s)]["seconds"], 2)
+                for s in run_steps_}
         # the step function alone, without the runner's per-command preflight and checksums
         doc["speedup_step_alone"] = {
-            s: round(by[(w1, s)]["step_s"] / by[(wn, s)]["step_s"], 2) for s in STEPS
+            s: round(by[(w1, s)]["step_s"] / by[(wn, s)]["step_s"], 2) for s in run_steps_
             if by[(wn, s)].get("step_s")}
-    if n_tiles:
+    if n_tiles and prepare and "degrade" in run_steps_:
         doc["extrapolation"] = {}
         for w in workers:
             # per 5000-px tile of one flight: prepare (per MP of flight) and degrade (per tile)
@@ -507,7 +512,7 @@ def markdown(doc: dict) -> str:
                         + ", ".join(f"{k} {v}×" for k, v in doc["speedup_vs_one_thread"].items()))
                      + f"; tiles and degraded tiles identical: "
                      f"{doc['outputs_identical_across_workers']}.")
-    if "seconds" in gw:
+    if "seconds" in gw and doc.get("prepare_vs_gdalwarp"):
         lines.append(f"gdalwarp, the same reprojection of the same flights (all CPUs): "
                      f"{gw['seconds']} s ({3 * doc['flight_px'] ** 2 / 1e6 / gw['seconds']:.2f}"
                      f" MP/s), {gw['bytes_written'] / 1e6:.0f} MB written.")
@@ -537,6 +542,9 @@ def main() -> None:
                          "runs of the same --size (site generation: ~450 s at 20000 px)")
     ap.add_argument("--no-gdalwarp", action="store_true",
                     help="skip the gdalwarp comparison")
+    ap.add_argument("--steps", default=",".join(STEPS),
+                    help="steps to run, in pipeline order, comma-separated (default: all; "
+                         "a step needs the ones before it, e.g. grid,footprints,align)")
     ap.add_argument("--child")
     ap.add_argument("--site")
     ap.add_argument("--run")
@@ -547,8 +555,11 @@ def main() -> None:
     workers = [w.strip() for w in str(args.workers).split(",")]
     if not all(w.rstrip("t").isdigit() and (not w.endswith("t") or w == "1t") for w in workers):
         ap.error("--workers: give counts such as 1,2 (and 1t for one thread in-process)")
+    steps = tuple(s.strip() for s in args.steps.split(","))
+    if not set(steps) <= set(STEPS):
+        ap.error(f"--steps: choose among {', '.join(STEPS)}")
     doc = run(args.size, args.tile_px, workers, args.keep, args.site_cache,
-              not args.no_gdalwarp)
+              not args.no_gdalwarp, steps)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(markdown(doc))
