@@ -198,6 +198,7 @@ def _holes(x_m, y_m):
     return np.where(hole, np.nan, x), np.where(hole, np.nan, y)
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # NaN nodes
 @pytest.mark.parametrize("field", [None, _holes])
 @pytest.mark.parametrize("rotation_deg", [0.0, 0.7])
 def test_strip_maps_equal_whole_window_maps(tmp_path, monkeypatch, field, rotation_deg):
