@@ -172,3 +172,19 @@ def test_extension_cases_leave_the_halves_unchanged(realdata, samples_dir):
         gen.make_case(3, sources, effects=("sensor_noise",))
     with pytest.raises(ValueError, match="one per family"):
         gen.draw_named_effects(np.random.default_rng(0), ("haze", "colour_response"))
+
+
+def test_blur_leaving_q_at_its_floor_is_not_claimed(realdata, samples_dir):
+    """Development-extension case x5000 (JPEG + noise at Q 1.0 on an SJER tile, made by the
+    independent generator): resampling fitted with Q pinned at the bottom of its range
+    stood in for the optics and was claimed, and the refined simulation fitted worse than
+    the baseline. A blur that leaves Q at its floor is withdrawn: no resampling, and never
+    above the baseline (the benchmark's own measure)."""
+    import diagnose_independent as bench
+
+    sources = gen.pick_sources(gen.list_sources(realdata, samples_dir))
+    case = gen.make_case(0, sources, **bench.extension_kw("noise", 0))
+    assert case.name == "x5000" and set(case.truth) == {"compression", "sensor_noise"}
+    row = bench.diagnose_case(case)
+    assert "resampling" not in row["claimed"], row["claimed"]
+    assert row["se_refined"] <= row["se_base"] + 1e-9, (row["se_base"], row["se_refined"])
