@@ -289,10 +289,19 @@ def luma(img: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- cases
-# Seeds below this are the development half (1000-1063: round 1's development and
-# validation cases, both seen while tuning); round 2's validation half is the odd seeds
-# 1065-1127, drawn only for the final report. Even seeds >= 1064 are kept for a later round.
+# Splits by seed. Round 3 (this one): the validation half is the EVEN seeds 1064-1126,
+# drawn only for round 3's final report; every other seed of 1000-1127 is development
+# (1000-1063: round 1's two halves, seen while tuning; the odd seeds 1065-1127: round 2's
+# validation half, seen in its final report).
 VALIDATION_FIRST_SEED = 1064
+VALIDATION_LAST_SEED = 1126
+
+
+def is_validation_seed(seed: int) -> bool:
+    """Whether ``seed`` belongs to the (round 3) validation half."""
+    return VALIDATION_FIRST_SEED <= seed <= VALIDATION_LAST_SEED and seed % 2 == 0
+
+
 #: development extension (tuning allowed): seeds 5000-5999, cases drawn with a forced
 #: effect set and Q range (targeted development cases; never validation)
 EXTENSION_SEEDS = (5000, 5999)
@@ -314,7 +323,7 @@ class Case:
     def split(self) -> str:
         if EXTENSION_SEEDS[0] <= self.seed <= EXTENSION_SEEDS[1]:
             return "extension"
-        return "validation" if self.seed >= VALIDATION_FIRST_SEED else "development"
+        return "validation" if is_validation_seed(self.seed) else "development"
 
 
 def draw_effects(rng: np.random.Generator, n_effects: int,

@@ -43,8 +43,11 @@ import diagnose_generator as gen  # noqa: E402
 
 REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
 SAMPLES = ROOT / "data" / "samples"
-N_CASES = 64  # development cases; validation: odd i in 65..127
 N_VALIDATION_LAST = 127
+#: case indices (seed 1000 + i) of the two halves (round 3: validation = even 64-126)
+DEVELOPMENT = [i for i in range(N_VALIDATION_LAST + 1) if not gen.is_validation_seed(1000 + i)]
+VALIDATION = [i for i in range(N_VALIDATION_LAST + 1) if gen.is_validation_seed(1000 + i)]
+N_CASES = len(DEVELOPMENT)
 #: development extension recipes: (forced effects, Q range or None for the full range).
 #: "noise": sensor noise under JPEG and with moved objects at low Q (the validation
 #: half's largest group of misses), and the same without noise (false-claim checks).
@@ -144,8 +147,8 @@ def main() -> None:
                     help="number of development cases (the first N)")
     ap.add_argument("--only", choices=("development", "validation"))
     ap.add_argument("--indices", type=lambda t: [int(v) for v in t.split(",")],
-                    help="comma-separated development case indices (0-63), e.g. to rerun "
-                         "the failures")
+                    help="comma-separated development case indices (0-63, odd 65-127), "
+                         "e.g. to rerun the failures")
     ap.add_argument("--extension", choices=sorted(EXTENSION_RECIPES),
                     help="run only the development extension (seeds 5000-5999) with these "
                          "recipes")
@@ -168,17 +171,16 @@ def main() -> None:
         return _write(args.out, run(list(range(args.extension_cases)), sources,
                                     lambda k: extension_kw(recipe, k)),
                       sources, time.time(), f"extension '{recipe}': 5000 + k")
-    first_val = gen.VALIDATION_FIRST_SEED - 1000
-    dev = list(range(min(args.cases, first_val)))
-    val = [i for i in range(first_val, N_VALIDATION_LAST + 1) if i % 2 == 1]
-    idx = {"development": dev, "validation": val}.get(args.only, dev + val)
+    dev = DEVELOPMENT[:args.cases]
+    idx = {"development": dev, "validation": VALIDATION}.get(args.only, dev + VALIDATION)
     if args.indices:
-        if max(args.indices) >= first_val:
-            sys.exit(f"--indices: development cases are 0-{first_val - 1}")
+        if set(args.indices) - set(DEVELOPMENT):
+            sys.exit("--indices: development cases only (0-63 and the odd 65-127)")
         idx = args.indices
     t0 = time.time()
     _write(args.out, run(idx, sources), sources, t0,
-           "1000 + i; development 1000-1063, validation odd 1065-1127")
+           "1000 + i; development 1000-1063 and odd 1065-1127, validation even 1064-1126 "
+           "(round 3)")
 
 
 def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
