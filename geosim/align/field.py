@@ -47,9 +47,9 @@ from scipy import ndimage
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
-from geosim.align.local import shifts_in_windows, window_starts
+from geosim.align.local import pair_valid, shifts_in_windows, window_starts
 from geosim.align.phasecorr import as_grey
-from geosim.errors import AlignmentError, RasterError
+from geosim.errors import AlignmentError
 
 __all__ = [
     "DisplacementField",
@@ -139,12 +139,7 @@ def measure_window_shifts(reference: np.ndarray, moving: np.ndarray, *,
     """
     ref = as_grey(reference, "reference")
     mov = as_grey(moving, "moving")
-    if ref.shape != mov.shape:
-        raise RasterError(f"reference {ref.shape} and moving {mov.shape} differ in shape; "
-                          "resample both onto the same grid first")
-    both = np.isfinite(ref) & np.isfinite(mov)
-    if valid is not None:
-        both &= np.asarray(valid, dtype=bool)
+    both = pair_valid(ref, mov, valid)
     sr = window_starts(ref.shape[0], window_px, step_px)
     sc = window_starts(ref.shape[1], window_px, step_px)
     dx, dy, conf = shifts_in_windows(ref, mov, both, both, sr, sc, int(window_px),

@@ -164,6 +164,27 @@ def shifts_in_windows_many(ref: np.ndarray,
     return out
 
 
+def pair_valid(ref: np.ndarray, mov: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
+    """Pixels usable in both grey images: finite in each and, if given, ``valid``.
+
+    Raises
+    ------
+    RasterError
+        The images, or the mask and the images, differ in shape.
+    """
+    if ref.shape != mov.shape:
+        raise RasterError(f"reference {ref.shape} and moving {mov.shape} images differ in "
+                          "shape; resample both onto the same grid first")
+    both = np.isfinite(ref) & np.isfinite(mov)
+    if valid is not None:
+        v = np.asarray(valid, dtype=bool)
+        if v.shape != ref.shape:
+            raise RasterError(f"valid mask shape {v.shape} does not match the images "
+                              f"{ref.shape}")
+        both &= v
+    return both
+
+
 def local_shift_field(reference: np.ndarray, moving: np.ndarray, *,
                       valid: np.ndarray | None = None, window_px: int = 256,
                       step_px: int = 256, min_confidence: float = DEFAULT_MIN_CONFIDENCE,
@@ -237,16 +258,7 @@ def local_shift_fields(reference: np.ndarray,
     jobs = []
     for moving, valid in movings:
         mov = as_grey(moving, "moving")
-        if ref.shape != mov.shape:
-            raise RasterError(f"reference {ref.shape} and moving {mov.shape} images differ in "
-                              "shape; resample both onto the same grid first")
-        both = np.isfinite(ref) & np.isfinite(mov)
-        if valid is not None:
-            v = np.asarray(valid, dtype=bool)
-            if v.shape != ref.shape:
-                raise RasterError(f"valid mask shape {v.shape} does not match the images "
-                                  f"{ref.shape}")
-            both &= v
+        both = pair_valid(ref, mov, valid)
         jobs.append((mov, both, both))
     starts_r = window_starts(ref.shape[0], window_px, step_px)
     starts_c = window_starts(ref.shape[1], window_px, step_px)

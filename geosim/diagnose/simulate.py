@@ -101,19 +101,25 @@ class QSimulator:
         ck = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6), key)
         if ck in self._variants:
             return self._variants[ck]
-        img = np.asarray(self.uav, dtype=float)
-        if shift_px[0] != 0 or shift_px[1] != 0:
-            img = fourier_shift(img, (float(shift_px[0]) * self.phi,
-                                      float(shift_px[1]) * self.phi))
-        if transfer is not None:
-            phi = self.phi
-            img = otf.apply_transfer(img, lambda fy, fx: transfer(fy * phi, fx * phi))
+        img = self._moved_filtered(np.asarray(self.uav, dtype=float), shift_px, transfer)
         out = QSimulator(img.astype(np.float32), phi=self.phi, valid=self.valid,
                          q_min=self.q_min, keep_image=False)
         if len(self._variants) >= VARIANT_CACHE:
             self._variants.pop(next(iter(self._variants)))
         self._variants[ck] = out
         return out
+
+    def _moved_filtered(self, img: np.ndarray, shift_px: tuple[float, float],
+                        transfer: TransferFunction | None) -> np.ndarray:
+        """The fine-grid image ``img`` moved by ``shift_px`` and filtered by ``transfer``
+        (both in satellite-grid units, scaled here by φ)."""
+        if shift_px[0] != 0 or shift_px[1] != 0:
+            img = fourier_shift(img, (float(shift_px[0]) * self.phi,
+                                      float(shift_px[1]) * self.phi))
+        if transfer is not None:
+            phi = self.phi
+            img = otf.apply_transfer(img, lambda fy, fx: transfer(fy * phi, fx * phi))
+        return img
 
     def native(self, q: float, native_pitch_px: float, *,
                shift_px: tuple[float, float] = (0.0, 0.0),
@@ -133,13 +139,8 @@ class QSimulator:
               key)
         if self._native_fine is None or self._native_fine[0] != ck:
             img = np.asarray(self.uav, dtype=float)
-            img = img[np.newaxis] if img.ndim == 2 else img
-            if shift_px[0] != 0 or shift_px[1] != 0:
-                img = fourier_shift(img, (float(shift_px[0]) * self.phi,
-                                          float(shift_px[1]) * self.phi))
-            if transfer is not None:
-                phi = self.phi
-                img = otf.apply_transfer(img, lambda fy, fx: transfer(fy * phi, fx * phi))
+            img = self._moved_filtered(img[np.newaxis] if img.ndim == 2 else img, shift_px,
+                                       transfer)
             # one Airy-blurred fine image kept (the pitch scans reuse it)
             self._native_fine = (ck, blur(img, q=q, phi=self.phi).astype(np.float32))
         fine = self._native_fine[1]
