@@ -25,7 +25,6 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import scipy.optimize
 
 from geosim.degrade.blur import (
     PAPER_LAPLACIAN,
@@ -343,6 +342,8 @@ def solve_q(lv_at: Callable[[float], float], target_lv: float, *, q_min: float =
     elif target_lv == lv_hi:
         q = q_max
     else:
+        import scipy.optimize  # here: `geosim degrade` imports this module but never solves
+
         q = float(scipy.optimize.brentq(residual, q_min, q_max, xtol=xtol))
     return QSolution(q=q, lv_at_q=float(lv_at(q)), target_lv=float(target_lv),
                      lv_at_q_min=lv_lo, lv_at_q_max=lv_hi, evaluations=evaluations[0])

@@ -58,7 +58,6 @@ from geosim.io.raster import (
     write_geotiff,
 )
 from geosim.manifest import skip_text
-from geosim.physics.psf import first_zero_px
 from geosim.prepare.aligned import AlignedFlight, AlignedReader, aligned_flights, flight_inputs
 from geosim.prepare.grid import sat_grid_offset
 from geosim.result import StepResult
@@ -123,6 +122,8 @@ def _quantization_step_grey(dtype: str) -> float:
 
 def guard_px(q_max: float) -> int:
     """Guard band (satellite px) left out next to UAV no-data: the first dark ring at q_max."""
+    from geosim.physics.psf import first_zero_px  # SciPy's special functions: calibrate only
+
     return min(MARGIN_SAT_PX, math.ceil(first_zero_px(q_max, phi=1)))
 
 
