@@ -545,3 +545,25 @@ def test_float_level_equals_opencv_filter_then_decimation(shape: tuple[int, int]
         got = core.halve_binomial6(level1, out=out, exact_sums=True)
         assert got is out
         np.testing.assert_array_equal(got, full[::2, ::2])
+
+
+def test_degrade_command_does_not_import_the_q_solver() -> None:
+    # `geosim degrade` imports the steps module, which also holds calibration: SciPy's
+    # optimizer (≈ 0.15 CPU-s and 25 MB at start-up, docs/degradation.md) and the PSF
+    # module's special functions are imported only where calibration uses them. A fresh
+    # interpreter, since this test process has imported them already.
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys, geosim.cli.main, geosim.cli.degrade, geosim.degrade.steps; "
+            "print(sorted(m for m in ('scipy.optimize', 'scipy.integrate', "
+            "'geosim.physics.psf') if m in sys.modules))")
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=root, env={**os.environ, "PYTHONPATH": str(root)})
+    assert out.stdout.strip() == "[]"
+    # and calibration still finds them when it solves for Q (its tests run the solver)
+    from geosim.degrade.steps import guard_px
+
+    assert guard_px(4.34) == min(24, int(np.ceil(psf.first_zero_px(4.34, phi=1))))
