@@ -252,7 +252,7 @@ def write_image(path: Path, img: AugImage, *, georef: Georef | None,
     img
         Image and valid mask (written as an internal mask band, or PNG alpha). The image
         may be a ``(bands, rows, cols)`` view of a pixel-interleaved buffer (as the
-        pipeline returns it): GDAL reads it through its strides, no copy.
+        pipeline returns it): it is read through its strides, no copy.
     georef
         Georeference to write, or ``None`` to write none (pixels off the map grid).
     tags
@@ -262,21 +262,42 @@ def write_image(path: Path, img: AugImage, *, georef: Georef | None,
         Band names (GeoTIFF).
     compress
         GeoTIFF compression, a key of :data:`TIFF_COMPRESSION`.
+
+    Notes
+    -----
+    Non-georeferenced uint8/uint16 images of 1 or 3 bands (nearly every geometric
+    output) are written by :mod:`geosim.augment.tiff_writer` (ISA-L deflate level 1,
+    the same file layout), everything else by GDAL (:func:`write_geotiff_gdal`, libdeflate
+    level 1); both are lossless and read back identically.
     """
     if path.suffix.lower() == ".png":
         return _write_png(path, img)
     if compress not in TIFF_COMPRESSION:
         raise ValueError(f"compress must be one of {', '.join(TIFF_COMPRESSION)}")
     arr = img.image
-    count, rows, cols = arr.shape
     desc = [d or f"band {i}" for i, d in enumerate(band_descriptions, start=1)]
     if tiff_writer.supports(arr, georeferenced=georef is not None, compress=compress):
         # the same layout GDAL writes, encoded without GDAL's block cache and with ISA-L
-        # deflate (the dominant cost of an augmented pair otherwise)
+        # deflate (otherwise the dominant cost of an augmented pair; docs/augmentation.md)
         with atomic_path(path) as tmp:
             tiff_writer.write_plain_tiff(tmp, np.moveaxis(arr, 0, -1), img.mask, tags=tags,
                                          band_descriptions=desc, compress=compress)
         return path
+    with atomic_path(path) as tmp:
+        write_geotiff_gdal(tmp, img, georef=georef, tags=tags, band_descriptions=desc,
+                           compress=compress)
+    return path
+
+
+def write_geotiff_gdal(path: Path, img: AugImage, *, georef: Georef | None,
+                       tags: Mapping[str, str], band_descriptions: Sequence[str],
+                       compress: str = "deflate") -> None:
+    """:func:`write_image`'s GeoTIFF written by GDAL (georeferenced or other outputs).
+
+    Not atomic (the caller is); ``band_descriptions``: one name per band, or none.
+    """
+    arr = img.image
+    count, rows, cols = arr.shape
     tiled = rows >= BLOCK_PX and cols >= BLOCK_PX
     profile: dict[str, Any] = {
         "driver": "GTiff", "width": cols, "height": rows, "count": count,
@@ -289,14 +310,13 @@ def write_image(path: Path, img: AugImage, *, georef: Georef | None,
         profile.update(blockxsize=BLOCK_PX, blockysize=BLOCK_PX)
     if georef is not None:
         profile.update(crs=georef.rasterio_crs(), transform=georef.transform)
-    with (_quiet_georef(), rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), atomic_path(path) as tmp,
-          rasterio.open(tmp, "w", **profile) as dst):
-        for i, d in enumerate(desc, start=1):
+    with (_quiet_georef(), rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True),
+          rasterio.open(path, "w", **profile) as dst):
+        for i, d in enumerate(band_descriptions, start=1):
             dst.set_band_description(i, d)
         dst.update_tags(**dict(tags))
         dst.write(arr)
         dst.write_mask(np.multiply(img.mask.view(np.uint8), 255, dtype=np.uint8))
-    return path
 
 
 @contextlib.contextmanager
