@@ -214,3 +214,49 @@ def test_combos_cover_every_fast_path() -> None:
     lasts = {c[-1] for c in COMBOS}
     assert {"colour", "hue", "noise"} <= firsts and {"noise", "hue", "value"} <= lasts
     assert any(len(c) > 1 and "noise" in c[:-1] for c in COMBOS)
+
+
+@pytest.mark.parametrize("independent", [False, True])
+def test_pair_noise_is_drawn_once_when_shared_and_equals_each_image_alone(
+        monkeypatch: pytest.MonkeyPatch, independent: bool) -> None:
+    """Truth: each image's photometric stage run on its own (no cache), OpenCV draws counted."""
+    from geosim.augment import AugImage
+    from geosim.augment.pipeline import AugmentStep, Pipeline
+
+    rng = np.random.default_rng(7)
+    rows, cols = 3 * BLOCK_ROWS + 17, 90
+    a = rng.integers(0, 256, (rows, cols, 3), dtype=np.uint8)
+    b = rng.integers(0, 256, (rows, cols, 3), dtype=np.uint8)
+    mask = np.ones((rows, cols), bool)
+    steps = (AugmentStep(Hue(sigma_deg=5.0), 1.0),
+             AugmentStep(Noise(sigma_dn=4.0, independent=independent), 1.0))
+    pipe = Pipeline(steps, reference_gsd_m=None)
+    records = pipe.draw(np.random.default_rng(3))
+    draws: list[int] = []
+    real = ph._draw_noise
+    monkeypatch.setattr(ph, "_draw_noise", lambda *args: draws.append(1) or real(*args))
+    res = pipe.replay(AugImage(np.moveaxis(a, -1, 0), mask), AugImage(np.moveaxis(b, -1, 0),
+                                                                        mask), records)
+    blocks = -(-rows // BLOCK_ROWS)
+    assert len(draws) == (2 * blocks if independent else blocks)
+    for img, src, side in ((res.a, a, 0), (res.b, b, 1)):
+        ops = []
+        for step, rec in zip(steps, records, strict=True):
+            op = step.function.ops(rec["params"], (rows, cols))[side]
+            if op is not None:
+                ops.append(op)
+        alone = _photometric_stage(src, mask, ops, 255.0)
+        assert np.array_equal(np.moveaxis(img.image, 0, -1), alone)
+
+
+def test_noise_cache_gives_the_block_only_for_the_same_draw() -> None:
+    cache = ph.NoiseBlockCache()
+    work = np.full((8, 10, 3), 100.0, np.float32)
+    first = ph.add_noise(work, sigma_dn=3.0, rng=np.random.default_rng(1), cache=cache)
+    again = ph.add_noise(work, sigma_dn=3.0, rng=np.random.default_rng(1), cache=cache)
+    other = ph.add_noise(work, sigma_dn=3.0, rng=np.random.default_rng(2), cache=cache)
+    bigger = ph.add_noise(work, sigma_dn=4.0, rng=np.random.default_rng(2), cache=cache)
+    assert cache.hits == 1
+    assert np.array_equal(first, again) and not np.array_equal(first, other)
+    assert np.array_equal(first, ph.add_noise(work, sigma_dn=3.0, rng=np.random.default_rng(1)))
+    assert not np.array_equal(other, bigger)

@@ -25,8 +25,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["add_noise", "colour_lut", "colour_shift", "dn_max_for", "hsv_shift", "from_work",
-           "saturates_to_range", "to_work"]
+__all__ = ["NoiseBlockCache", "add_noise", "colour_lut", "colour_shift", "dn_max_for",
+           "hsv_shift", "from_work", "saturates_to_range", "to_work"]
 
 #: Largest 31-bit seed handed to OpenCV's generator.
 _CV_SEED_MAX = 2**31 - 1
@@ -179,8 +179,37 @@ def hsv_shift(work: np.ndarray, *, hue_deg: float = 0.0, saturation_dn: float = 
     return out
 
 
+class NoiseBlockCache:
+    """The last noise block :func:`add_noise` drew, for an identical draw that follows.
+
+    A noise block is a function of its OpenCV seed, shape, ``sigma_dn`` and ``dn_max``
+    only, so a second image whose noise generator gives the same seed (the pair's
+    "together" noise: one seed for both images) can take the block instead of drawing
+    it again: the same values, bit for bit. One block is kept (the pipeline runs the two
+    images of a pair block by block in turn).
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._noise: np.ndarray | None = None
+        self.hits = 0
+
+    def take(self, key: tuple) -> np.ndarray | None:
+        """The cached block if it was drawn with ``key`` (then forgotten), else None."""
+        if self._key != key:
+            return None
+        noise, self._key, self._noise = self._noise, None, None
+        self.hits += 1
+        return noise
+
+    def put(self, key: tuple, noise: np.ndarray) -> None:
+        """Keep ``noise`` (not to be modified afterwards) as the block drawn with ``key``."""
+        self._key, self._noise = key, noise
+
+
 def add_noise(work: np.ndarray, *, sigma_dn: float, rng: np.random.Generator,
-              dn_max: float = 255.0, out: np.ndarray | None = None) -> np.ndarray:
+              dn_max: float = 255.0, out: np.ndarray | None = None,
+              cache: NoiseBlockCache | None = None) -> np.ndarray:
     """Add zero-mean Gaussian noise, independent for every pixel and band.
 
     The normals come from OpenCV's generator (:func:`cv2.randn`, 4–5× faster than
@@ -203,23 +232,40 @@ def add_noise(work: np.ndarray, *, sigma_dn: float, rng: np.random.Generator,
         Optional uint8/uint16 array of ``work``'s shape (:func:`saturates_to_range`):
         the noisy image is added, rounded and saturated straight into it, one OpenCV pass
         instead of add, clip and :func:`from_work` (the same values), and returned.
+    cache
+        Optional :class:`NoiseBlockCache`: the block is taken from it when it holds one
+        drawn with the same seed, shape and amounts, and left in it otherwise.
     """
-    noise = np.empty(work.shape, np.float32)
-    flat = noise.reshape(noise.shape[0], -1)  # one channel: any number of bands
     # cv2.randn draws from the calling thread's generator; seeding it right before
     # the draw makes the result independent of anything else run before.
-    cv2.setRNGSeed(int(rng.integers(1, _CV_SEED_MAX)))
-    if sigma_dn * 8.0 > 255.0:  # otherwise |noise| > 255 has probability < 1e-15
-        cv2.randn(flat, 0.0, float(sigma_dn))
-        np.clip(noise, -255.0, 255.0, out=noise)
-        noise *= np.float32(dn_max / 255.0)
-    else:
-        cv2.randn(flat, 0.0, float(sigma_dn * dn_max / 255.0))
+    seed = int(rng.integers(1, _CV_SEED_MAX))
+    key = (seed, work.shape, float(sigma_dn), float(dn_max))
+    noise = cache.take(key) if cache is not None else None
+    if noise is None:
+        noise = _draw_noise(work.shape, seed, sigma_dn, dn_max)
+        if cache is not None:
+            cache.put(key, noise)
+    flat = noise.reshape(noise.shape[0], -1)
     if out is not None:
         if not saturates_to_range(out.dtype) or out.shape != work.shape:
             raise ValueError(f"out must be uint8 or uint16 of shape {work.shape}")
         src = np.ascontiguousarray(work, dtype=np.float32).reshape(flat.shape)
         cv2.add(src, flat, dst=out.reshape(flat.shape), dtype=_CV_DEPTH[out.dtype])
         return out
-    noise += work
-    return np.clip(noise, 0.0, dn_max, out=noise)
+    res = noise + work  # a new array: a cached block stays as drawn
+    return np.clip(res, 0.0, dn_max, out=res)
+
+
+def _draw_noise(shape: tuple[int, ...], seed: int, sigma_dn: float, dn_max: float
+                ) -> np.ndarray:
+    """Float32 noise block of ``shape``, DN: OpenCV's normals from ``seed``, scaled."""
+    noise = np.empty(shape, np.float32)
+    flat = noise.reshape(noise.shape[0], -1)  # one channel: any number of bands
+    cv2.setRNGSeed(seed)
+    if sigma_dn * 8.0 > 255.0:  # otherwise |noise| > 255 has probability < 1e-15
+        cv2.randn(flat, 0.0, float(sigma_dn))
+        np.clip(noise, -255.0, 255.0, out=noise)
+        noise *= np.float32(dn_max / 255.0)
+    else:
+        cv2.randn(flat, 0.0, float(sigma_dn * dn_max / 255.0))
+    return noise

@@ -35,11 +35,11 @@ from __future__ import annotations
 
 import os
 import tomllib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Generator, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -74,6 +74,8 @@ DENSIFY_PX = 1.0
 
 #: Rows per block in photometric stages (bounded float32 working memory, cache-sized).
 BLOCK_ROWS = 128
+
+_T = TypeVar("_T")
 
 _PIPELINE_KEYS = {"min_visible_fraction", "interpolation", "reference_gsd_m"}
 
@@ -342,17 +344,38 @@ class Pipeline:
                 ops_a.append((step.function.name, op_a))
             if op_b is not None:
                 ops_b.append((step.function.name, op_b))
-        out_a, chain_a, dropped_a = _execute(a, ops_a, self.interpolation,
-                                             self.min_visible_fraction)
-        out_b, chain_b, dropped_b = _execute(b, ops_b, self.interpolation,
-                                             self.min_visible_fraction)
+        # The two images run in turn, photometric block by photometric block, so that the
+        # pair's shared noise ("together": one seed) is drawn once per block for both.
+        noise = photo.NoiseBlockCache()
+        (out_a, chain_a, dropped_a), (out_b, chain_b, dropped_b) = _in_turn(
+            _execute(a, ops_a, self.interpolation, self.min_visible_fraction, noise),
+            _execute(b, ops_b, self.interpolation, self.min_visible_fraction, noise))
         return AugmentResult(out_a, out_b, [dict(r) for r in records], chain_a, chain_b,
                              dropped_a, dropped_b)
 
 
+def _in_turn(*runs: Generator[None, None, _T]) -> list[_T]:
+    """Advance generators one step each in turn until all are done; their return values."""
+    results: list[Any] = [None] * len(runs)
+    pending = dict(enumerate(runs))
+    while pending:
+        for i, run in list(pending.items()):
+            try:
+                next(run)
+            except StopIteration as done:
+                results[i] = done.value
+                del pending[i]
+    return results
+
+
 def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
-             min_visible_fraction: float) -> tuple[AugImage, list[dict[str, Any]], int]:
+             min_visible_fraction: float, noise: photo.NoiseBlockCache | None = None
+             ) -> Generator[None, None, tuple[AugImage, list[dict[str, Any]], int]]:
     """Run one image's operations, fusing consecutive affine and photometric ones.
+
+    A generator: it pauses after every block of a photometric stage (see
+    :func:`_in_turn`) and returns ``(image, chain, dropped boxes)``; ``noise`` is the
+    pair's :class:`~geosim.augment.photometric.NoiseBlockCache`.
 
     An image that is a view of a pixel-interleaved buffer is worked on in that layout
     (OpenCV's) from the start. A contiguous bands-first image is interleaved once, at the
@@ -396,21 +419,22 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
                           "matrix_px": affine.tolist()})
         affine, affine_names = np.eye(3), []
 
-    def flush_pixel() -> None:
+    def flush_pixel() -> Generator[None, None, None]:
         nonlocal hwc, pixel_ops
         if pixel_ops:
             to_interleaved()
-            hwc = _photometric_stage(hwc, mask, [op for _, op in pixel_ops], dn_max)
+            hwc = yield from _photometric_blocks(hwc, mask, [op for _, op in pixel_ops],
+                                                 dn_max, noise)
             chain.append({"kind": "photometric", "functions": [n for n, _ in pixel_ops]})
         pixel_ops = []
 
     for i, (name, op) in enumerate(ops):
         if isinstance(op, AffineOp):
-            flush_pixel()
+            yield from flush_pixel()
             affine = op.matrix @ affine
             affine_names.append(name)
         elif isinstance(op, WarpOp):
-            flush_pixel()
+            yield from flush_pixel()
             f = op.field
             pending = affine if affine_names and not is_identity(affine) else None
             if pending is not None:
@@ -432,7 +456,7 @@ def _execute(img: AugImage, ops: Iterable[tuple[str, Op]], interpolation: str,
             flush_affine(pixel_stage_next=True)
             pixel_ops.append((name, op))
     flush_affine()
-    flush_pixel()
+    yield from flush_pixel()
     # never hand back the caller's arrays
     if np.may_share_memory(hwc, img.image):
         hwc = hwc.copy()
@@ -462,7 +486,23 @@ def _merge_hsv(ops: Sequence[PixelOp]) -> list[PixelOp]:
 
 def _photometric_stage(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp],
                        dn_max: float) -> np.ndarray:
+    """:func:`_photometric_blocks` run to the end on its own: the new image."""
+    run = _photometric_blocks(hwc, mask, ops, dn_max)
+    while True:
+        try:
+            next(run)
+        except StopIteration as done:
+            return done.value  # type: ignore[no-any-return]
+
+
+def _photometric_blocks(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp],
+                        dn_max: float, noise: photo.NoiseBlockCache | None = None
+                        ) -> Generator[None, None, np.ndarray]:
     """Apply photometric ops in float32, row block by row block (bounded memory).
+
+    A generator pausing after each block (the pipeline runs the pair's two images in
+    turn, :func:`_in_turn`) and returning the new image; trailing noise goes through
+    the pair's ``noise`` cache (the same values, drawn once for both images).
 
     ``hwc`` is the interleaved ``(rows, cols, bands)`` image. Each block is
     converted to float32 once, goes through every op (colour conversions and
@@ -491,32 +531,42 @@ def _photometric_stage(hwc: np.ndarray, mask: np.ndarray, ops: Sequence[PixelOp]
             out = cv2.LUT(hwc, photo.from_work(lut, np.uint8))
             return zero_invalid(out, mask)
     rngs = [np.random.default_rng(op.seed) if op.seed is not None else None for op in ops]
-    saturating = photo.saturates_to_range(dtype)
     rows = hwc.shape[0]
     out = np.empty(hwc.shape, dtype)
     for r0 in range(0, rows, BLOCK_ROWS):
         block = slice(r0, min(rows, r0 + BLOCK_ROWS))
-        work = cv2.LUT(hwc[block], lut) if lut is not None else photo.to_work(hwc[block])
-        in_range = saturating or lut is not None  # every kernel's result is clipped too
-        written = False
-        for i, (op, rng) in enumerate(zip(ops, rngs, strict=True)):
-            last = i == len(ops) - 1
-            if last and saturating and op.noise_sigma_dn is not None:
-                photo.add_noise(work, sigma_dn=op.noise_sigma_dn, rng=rng, dn_max=dn_max,
-                                out=out[block])
-                written = True
-            elif op.hsv is not None:
-                h, s, v = op.hsv
-                work = photo.hsv_shift(work, hue_deg=h, saturation_dn=s, value_dn=v,
-                                       dn_max=dn_max, clip_input=not in_range,
-                                       clip_output=not (last and saturating))
-            else:
-                work = op.func(work, dn_max, rng)
-            in_range = True
-        if not written:
-            photo.from_work(work, dtype, out=out[block])
-        zero_invalid(out[block], mask[block])  # while the block is in cache
+        _photometric_block(hwc[block], mask[block], out[block], ops, rngs, lut, dn_max, noise)
+        yield
     return out
+
+
+def _photometric_block(hwc: np.ndarray, mask: np.ndarray, out: np.ndarray,
+                       ops: Sequence[PixelOp], rngs: Sequence[np.random.Generator | None],
+                       lut: np.ndarray | None, dn_max: float,
+                       noise: photo.NoiseBlockCache | None) -> None:
+    """One row block of :func:`_photometric_blocks`, written into ``out``."""
+    dtype = hwc.dtype
+    saturating = photo.saturates_to_range(dtype)
+    work = cv2.LUT(hwc, lut) if lut is not None else photo.to_work(hwc)
+    in_range = saturating or lut is not None  # every kernel's result is clipped too
+    written = False
+    for i, (op, rng) in enumerate(zip(ops, rngs, strict=True)):
+        last = i == len(ops) - 1
+        if last and saturating and op.noise_sigma_dn is not None:
+            photo.add_noise(work, sigma_dn=op.noise_sigma_dn, rng=rng, dn_max=dn_max,
+                            out=out, cache=noise)
+            written = True
+        elif op.hsv is not None:
+            h, s, v = op.hsv
+            work = photo.hsv_shift(work, hue_deg=h, saturation_dn=s, value_dn=v,
+                                   dn_max=dn_max, clip_input=not in_range,
+                                   clip_output=not (last and saturating))
+        else:
+            work = op.func(work, dn_max, rng)
+        in_range = True
+    if not written:
+        photo.from_work(work, dtype, out=out)
+    zero_invalid(out, mask)  # while the block is in cache
 
 
 def flatten_records(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
