@@ -86,7 +86,7 @@ def test_reads_back_through_gdal_exactly_as_the_gdal_written_file(
         assert np.array_equal(tf.pages[0].asarray().reshape(*shape, bands), hwc)
         page = tf.pages[1]
         assert page.tags["NewSubfileType"].value == 4 and page.bitspersample == 1
-        assert page.photometric == 4
+        assert page.photometric == 4 and page.compression == 8   # deflated, as GDAL does
 
 
 @pytest.mark.parametrize("compress", ["deflate", "none"])

@@ -162,18 +162,19 @@ def write_plain_tiff(path: Path, hwc: np.ndarray, mask: np.ndarray, *,
     rows, cols, bands = hwc.shape
     deflate = compress == "deflate"
 
-    def encode(tiles: Iterator[bytes]) -> list[bytes]:
-        if not deflate:
+    def encode(tiles: Iterator[bytes], compress: bool) -> list[bytes]:
+        if not compress:
             return list(tiles)
         return [isal_zlib.compress(t, DEFLATE_LEVEL) for t in tiles]
 
-    image_tiles = encode(_image_tiles(hwc, deflate))
-    mask_tiles = encode(_mask_tiles(mask))
+    image_tiles = encode(_image_tiles(hwc, deflate), deflate)
+    mask_tiles = encode(_mask_tiles(mask), True)  # GDAL deflates its masks either way
     bits = hwc.dtype.itemsize * 8
     photometric = 2 if bands == 3 and bits == 8 else 1  # as GDAL: RGB for 3 bytes
-    common = [(256, _LONG, [cols]), (257, _LONG, [rows]), (259, _SHORT, [_COMPRESSION[compress]]),
-              (284, _SHORT, [1]), (322, _SHORT, [TILE_PX]), (323, _SHORT, [TILE_PX])]
-    main = [*common, (258, _SHORT, [bits] * bands), (262, _SHORT, [photometric]),
+    common = [(256, _LONG, [cols]), (257, _LONG, [rows]), (284, _SHORT, [1]),
+              (322, _SHORT, [TILE_PX]), (323, _SHORT, [TILE_PX])]
+    main = [*common, (259, _SHORT, [_COMPRESSION[compress]]),
+            (258, _SHORT, [bits] * bands), (262, _SHORT, [photometric]),
             (277, _SHORT, [bands]), (339, _SHORT, [1] * bands)]
     if tags or band_descriptions:  # GDAL writes no empty metadata tag either
         main.append((42112, _ASCII, gdal_metadata_xml(tags, band_descriptions).encode()))
@@ -181,7 +182,7 @@ def write_plain_tiff(path: Path, hwc: np.ndarray, mask: np.ndarray, *,
         main.append((317, _SHORT, [2]))
     if photometric == 1 and bands > 1:
         main.append((338, _SHORT, [0] * (bands - 1)))
-    msk = [*common, (254, _LONG, [4]), (258, _SHORT, [1]), (262, _SHORT, [4]),
+    msk = [*common, (254, _LONG, [4]), (259, _SHORT, [8]), (258, _SHORT, [1]), (262, _SHORT, [4]),
            (277, _SHORT, [1]), (339, _SHORT, [1])]
     # Layout: header, the two IFDs (with their values), image tiles, mask tiles. The IFDs
     # need the tile offsets, which depend on the IFDs' sizes: size them with dummy offsets.
