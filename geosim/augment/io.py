@@ -227,9 +227,10 @@ def write_yolo(path: Path, boxes: Boxes, shape: tuple[int, int]) -> Path:
     return write_text(path, "".join(lines))
 
 
-#: ``--compress`` choices for augmented GeoTIFFs: GDAL creation options of each. Deflate
-#: level 1 (libdeflate) with the horizontal predictor is lossless and about half the raw
-#: size; ``none`` costs no encoding and is the fastest to load (twice the disk).
+#: ``--compress`` choices for augmented GeoTIFFs: GDAL creation options of each (the direct
+#: writer, :mod:`geosim.augment.tiff_writer`, encodes the same with ISA-L). Deflate level 1
+#: with the horizontal predictor is lossless and about 40 % of the raw size of an augmented
+#: image; ``none`` costs no encoding and is the fastest to load (2.5× the disk).
 TIFF_COMPRESSION: dict[str, dict[str, Any]] = {
     "deflate": {"compress": "deflate", "zlevel": 1},
     "none": {"compress": "none"},
