@@ -52,6 +52,19 @@ from geosim.validate import check_out_dir, preflight
 #: GDAL block cache of every run, MB (GDAL's default is 5 % of RAM): bounds memory.
 GDAL_CACHE_MB = 256
 
+
+def gdal_environment() -> rasterio.Env:
+    """The bounded GDAL environment every command runs in: a :data:`GDAL_CACHE_MB` block cache.
+
+    ``rasterio.Env`` hands an integer ``GDAL_CACHEMAX`` to ``GDALSetCacheMax64``, which
+    takes **bytes** (the environment variable of the same name means MB below 100 000):
+    ``GDAL_CACHEMAX=256`` left GDAL a 256-byte cache, so every in-process task (``--workers
+    1``) ran without one, and the tiles step's tasks cost ≈ 45 % more CPU than on a Dask
+    worker, whose environment variable gives 256 MB (docs/scale.md).
+    """
+    return rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB * 2**20)
+
+
 StepFunction = Callable[..., StepResult]
 
 
@@ -212,7 +225,7 @@ def run_pipeline(site: SiteConfig, out_dir: str | Path | RunDir, *,
                for name, paths in _outputs_by_step(previous).items()}
     start = time.perf_counter()
     try:
-        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB), _sigterm_raises():
+        with gdal_environment(), _sigterm_raises():
             for i, step in enumerate(steps, start=1):
                 if step.needs_satellite and site.satellite is None:
                     record["steps"][step.name] = {"status": "skipped",

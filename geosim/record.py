@@ -26,8 +26,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import rasterio
-
 from geosim import __version__, engine
 from geosim.io.atomic import recording_outputs, to_jsonable, write_json
 from geosim.pipeline import (
@@ -36,6 +34,7 @@ from geosim.pipeline import (
     _read_record,
     _sigterm_raises,
     file_checksums,
+    gdal_environment,
 )
 
 
@@ -95,7 +94,7 @@ def command_record(command: str, run_json: Path, *, inputs: Mapping[str, Path | 
     status, error = "ok", None
     with recording_outputs() as written:
         try:
-            with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB), _sigterm_raises():
+            with gdal_environment(), _sigterm_raises():
                 yield run
         except BaseException as exc:
             status = "failed" if isinstance(exc, Exception) else "interrupted"

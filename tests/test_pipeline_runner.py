@@ -107,3 +107,53 @@ def test_partial_run_keeps_earlier_step_records(tmp_path: Path, fake_steps: list
     assert list(record["steps"]) == ["one", "two"]
     assert record["steps"]["one"] == {**first["one"], "from_earlier_run": True}
     assert "from_earlier_run" not in record["steps"]["two"]
+
+
+# ------------------------------------------------------------------- GDAL block cache
+
+
+def _gdal_cache_bytes(_: object = None) -> int:
+    """GDAL's block cache limit in bytes, asked of the libgdal this process loaded (through
+    ctypes, not through rasterio, whose option handling is what is under test)."""
+    import ctypes
+
+    import rasterio  # noqa: F401  (loads libgdal)
+
+    maps = Path("/proc/self/maps")
+    if not maps.is_file():
+        pytest.skip("needs /proc/self/maps (Linux) to find the loaded libgdal")
+    libs = {line.split()[-1] for line in maps.read_text().splitlines()
+            if "libgdal" in line.split()[-1]}
+    if len(libs) != 1:
+        pytest.skip(f"expected one loaded libgdal, found {sorted(libs)}")
+    lib = ctypes.CDLL(libs.pop())
+    lib.GDALGetCacheMax64.restype = ctypes.c_int64
+    return int(lib.GDALGetCacheMax64())
+
+
+def test_in_process_tasks_get_the_bounded_gdal_cache_in_megabytes(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A step's in-process engine tasks and a command's body run with GDAL_CACHE_MB MB of
+    block cache, as GDAL itself reports it (rasterio.Env takes an integer GDAL_CACHEMAX as
+    bytes: the runner's former GDAL_CACHEMAX=256 left a 256-byte cache)."""
+    from geosim.engine import parallel_map
+    from geosim.pipeline import GDAL_CACHE_MB
+    from geosim.record import command_record
+
+    seen: list[int] = []
+    mod = types.ModuleType("cache_steps")
+
+    def probe(site, out):  # noqa: ANN001, ANN202
+        seen.extend(parallel_map(_gdal_cache_bytes, [0, 1]))
+        return StepResult("probed")
+
+    mod.probe = probe
+    monkeypatch.setitem(sys.modules, "cache_steps", mod)
+    monkeypatch.setattr("geosim.pipeline.STEPS", (Step("probe", "cache_steps", "probe"),))
+    monkeypatch.setattr("geosim.pipeline.STEP_NAMES", ("probe",))
+    img = write_raster(tmp_path / "a.tif", textured_rgb(32, 32))
+    run_pipeline(site_from_images([img], None), tmp_path / "out", echo=lambda s: None)
+    with command_record("movement", tmp_path / "cmd" / "run.json", inputs={},
+                        options={}):
+        seen.append(_gdal_cache_bytes())
+    assert seen == [GDAL_CACHE_MB * 2**20] * 3
