@@ -37,3 +37,23 @@ def write_raster(path: Path, array: np.ndarray, *, crs: str | None = "EPSG:28356
     with rasterio.open(path, "w", **profile) as dst:
         dst.write(arr)
     return path
+
+
+def gdal_cache_bytes() -> int | None:
+    """GDAL's block cache limit in bytes, asked of the libgdal this process loaded (through
+    ctypes, not through rasterio, whose option handling it checks); None where the loaded
+    library cannot be found (no ``/proc/self/maps``, or not exactly one libgdal)."""
+    import ctypes
+
+    import rasterio  # noqa: F401  (loads libgdal)
+
+    maps = Path("/proc/self/maps")
+    if not maps.is_file():
+        return None
+    libs = {line.split()[-1] for line in maps.read_text().splitlines()
+            if "libgdal" in line.split()[-1]}
+    if len(libs) != 1:
+        return None
+    lib = ctypes.CDLL(libs.pop())
+    lib.GDALGetCacheMax64.restype = ctypes.c_int64
+    return int(lib.GDALGetCacheMax64())

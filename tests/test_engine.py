@@ -25,11 +25,13 @@ from click.testing import CliRunner
 
 from geosim.cli.main import cli
 from geosim.engine import (
+    WORKER_GDAL_CACHEMAX_MB,
     InProcess,
     LocalCluster,
     SchedulerCluster,
     _check_identities,
     _geosim_identity,
+    _task_keys,
     make_engine,
     open_engine,
     parallel_map,
@@ -169,7 +171,11 @@ def test_local_cluster_order_workers_and_worker_errors(recwarn: pytest.WarningsR
         pass  # already taken by another program: the same case
     try:
         with open_engine(2) as engine:
-            assert parallel_map(_square, list(range(8))) == [i * i for i in range(8)]
+            from distributed import get_task_stream
+
+            with get_task_stream(engine.client) as stream:
+                assert parallel_map(_square, list(range(8)), desc="a square") == [
+                    i * i for i in range(8)]
             with pytest.raises(InputFileError, match="tile -1.tif not found"):
                 parallel_map(_square, [2, -1, 3])
             info = engine.describe()
@@ -185,8 +191,21 @@ def test_local_cluster_order_workers_and_worker_errors(recwarn: pytest.WarningsR
     # Dask's statistical profiler is off on the workers geosim starts, and glibc was told
     # to keep freed heap despite the nanny's MALLOC_TRIM_THRESHOLD_=65536
     assert len(worker_state) == 2
+    # ... and GDAL (asked itself) has the 256 MB block cache of WORKER_ENV
     for state in worker_state.values():
-        assert state == {"profile": False, "trim_env": "65536", "heap_kept": True}
+        assert state == {"profile": False, "trim_env": "65536", "heap_kept": True,
+                         "gdal_cache_bytes": WORKER_GDAL_CACHEMAX_MB * 2**20}
+    # the tasks are named by the step's label in Dask's task stream
+    keys = sorted(str(t["key"]) for t in stream.data)
+    assert len(keys) == 8 and all(k.startswith("a_square-") for k in keys)
+
+
+def test_task_keys_are_unique_named_and_sort_in_task_order() -> None:
+    keys = _task_keys(_square, None, 12)
+    assert len(set(keys)) == 12 and all(k.startswith("_square-") for k in keys)
+    assert sorted(keys) == keys  # Dask breaks ties by key: tasks start in this order
+    again = _task_keys(_square, "local check", 3)
+    assert all(k.startswith("local_check-") for k in again) and not set(again) & set(keys)
 
 
 def _worker_state() -> dict:
@@ -195,8 +214,10 @@ def _worker_state() -> dict:
     import dask
 
     from geosim.heap import keep_freed_heap
+    from tests.helpers import gdal_cache_bytes
 
-    return {"profile": dask.config.get("distributed.worker.profile.enabled"),
+    return {"gdal_cache_bytes": gdal_cache_bytes(),
+            "profile": dask.config.get("distributed.worker.profile.enabled"),
             "trim_env": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
             "heap_kept": keep_freed_heap()}
 

@@ -14,7 +14,7 @@ from geosim.config import site_from_images
 from geosim.errors import ConfigError
 from geosim.pipeline import Step, run_pipeline, select_steps
 from geosim.result import StepResult
-from tests.helpers import textured_rgb, write_raster
+from tests.helpers import gdal_cache_bytes, textured_rgb, write_raster
 
 
 @pytest.fixture
@@ -113,22 +113,10 @@ def test_partial_run_keeps_earlier_step_records(tmp_path: Path, fake_steps: list
 
 
 def _gdal_cache_bytes(_: object = None) -> int:
-    """GDAL's block cache limit in bytes, asked of the libgdal this process loaded (through
-    ctypes, not through rasterio, whose option handling is what is under test)."""
-    import ctypes
-
-    import rasterio  # noqa: F401  (loads libgdal)
-
-    maps = Path("/proc/self/maps")
-    if not maps.is_file():
-        pytest.skip("needs /proc/self/maps (Linux) to find the loaded libgdal")
-    libs = {line.split()[-1] for line in maps.read_text().splitlines()
-            if "libgdal" in line.split()[-1]}
-    if len(libs) != 1:
-        pytest.skip(f"expected one loaded libgdal, found {sorted(libs)}")
-    lib = ctypes.CDLL(libs.pop())
-    lib.GDALGetCacheMax64.restype = ctypes.c_int64
-    return int(lib.GDALGetCacheMax64())
+    got = gdal_cache_bytes()
+    if got is None:
+        pytest.skip("needs /proc/self/maps (Linux) and one loaded libgdal")
+    return got
 
 
 def test_in_process_tasks_get_the_bounded_gdal_cache_in_megabytes(
