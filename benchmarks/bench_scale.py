@@ -229,7 +229,7 @@ def child_step(step: str, site_file: str, out: str, workers: int | None) -> dict
         profile = os.environ.get("GEOSIM_BENCH_PROFILE")
         name = f"{step}_w{workers}" + ("t" if os.environ.get("GEOSIM_THREADS") == "1" else "")
         with _task_stream(client) as stream, _profiled(profile, name):
-            t0 = time.perf_counter()
+            t0, epoch0 = time.perf_counter(), time.time()
             doc = run_pipeline(site, out, only=[step], echo=lambda s: None)
             seconds = time.perf_counter() - t0
         rec["driver_cpu_s"] = round(_own_cpu_seconds() - driver0, 2)
@@ -241,6 +241,8 @@ def child_step(step: str, site_file: str, out: str, workers: int | None) -> dict
             rec["worker_peak_rss_mb"] = sorted(client.run(_peak_rss_mb).values())
             rec.update(_task_summary(stream.data if stream is not None else [], seconds,
                                      len(rec["worker_peak_rss_mb"])))
+            rec["timeline"] = _timeline(stream.data if stream is not None else [], epoch0,
+                                        seconds, len(rec["worker_peak_rss_mb"]))
     rec.update({"seconds": round(seconds, 2), "peak_rss_mb": _peak_rss_mb(),
                 "load_average_1min": [round(load0, 2), round(os.getloadavg()[0], 2)]})
     return rec
@@ -301,6 +303,45 @@ def _task_summary(tasks: list[dict], seconds: float, n_workers: int) -> dict:
     return {"tasks": len(tasks), "worker_busy_s": round(busy, 2),
             "worker_busy_fraction": round(busy / (n_workers * seconds), 3)
             if seconds > 0 and n_workers else None}
+
+
+def _timeline(tasks: list[dict], epoch0: float, seconds: float, n_workers: int) -> dict:
+    """Where a cluster step's wall time went, from Dask's task stream.
+
+    ``busy_workers_s``: seconds of the step during which 0, 1, … ``n_workers`` workers were
+    computing (the rest of "all busy" is the tail, the driver's serial work and the
+    scheduling gaps); ``first_task_s`` / ``last_task_end_s``: when the first task started
+    and the last one ended, from the step's start; ``by_task``: per task function, the
+    tasks, their summed and longest compute seconds and the span from the first start to
+    the last stop (s from the step's start).
+    """
+    spans = [(s["start"] - epoch0, s["stop"] - epoch0, str(t.get("key", "")))
+             for t in tasks for s in t.get("startstops", ()) if s.get("action") == "compute"]
+    if not spans:
+        return {}
+    edges = sorted({0.0, seconds, *(min(max(a, 0.0), seconds) for a, _, _ in spans),
+                    *(min(max(b, 0.0), seconds) for _, b, _ in spans)})
+    busy = {k: 0.0 for k in range(n_workers + 1)}
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        mid = (lo + hi) / 2
+        k = min(n_workers, sum(a <= mid < b for a, b, _ in spans))
+        busy[k] += hi - lo
+    by_task: dict[str, dict] = {}
+    for a, b, key in spans:
+        name = key.split("-")[0] if key else "?"
+        rec = by_task.setdefault(name, {"tasks": 0, "compute_s": 0.0, "longest_s": 0.0,
+                                        "first_start_s": a, "last_stop_s": b})
+        rec["tasks"] += 1
+        rec["compute_s"] += b - a
+        rec["longest_s"] = max(rec["longest_s"], b - a)
+        rec["first_start_s"] = min(rec["first_start_s"], a)
+        rec["last_stop_s"] = max(rec["last_stop_s"], b)
+    return {"busy_workers_s": {str(k): round(v, 2) for k, v in busy.items()},
+            "first_task_s": round(min(a for a, _, _ in spans), 2),
+            "last_task_end_s": round(max(b for _, b, _ in spans), 2),
+            "by_task": {k: {kk: round(vv, 2) if isinstance(vv, float) else vv
+                            for kk, vv in v.items()}
+                        for k, v in sorted(by_task.items(), key=lambda kv: kv[1]["first_start_s"])}}
 
 
 def _own_cpu_seconds() -> float:
