@@ -60,7 +60,8 @@ def gdal_environment() -> rasterio.Env:
     takes **bytes** (the environment variable of the same name means MB below 100 000):
     ``GDAL_CACHEMAX=256`` left GDAL a 256-byte cache, so every in-process task (``--workers
     1``) ran without one, and the tiles step's tasks cost ≈ 45 % more CPU than on a Dask
-    worker, whose environment variable gives 256 MB (docs/scale.md).
+    worker, whose environment variable gives 256 MB (docs/scale.md). The special case is
+    rasterio's (rasterio/rasterio#1042; the same trap: rasterio/rasterio#2336).
     """
     return rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB * 2**20)
 
