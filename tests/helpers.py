@@ -40,9 +40,13 @@ def write_raster(path: Path, array: np.ndarray, *, crs: str | None = "EPSG:28356
 
 
 def gdal_cache_bytes() -> int | None:
-    """GDAL's block cache limit in bytes, asked of the libgdal this process loaded (through
-    ctypes, not through rasterio, whose option handling it checks); None where the loaded
-    library cannot be found (no ``/proc/self/maps``, or not exactly one libgdal)."""
+    """GDAL's block cache limit in bytes, asked of the libgdal rasterio loaded (through
+    ctypes, not through rasterio, whose option handling it checks); None where that library
+    cannot be found (no ``/proc/self/maps``; several libgdal, none from rasterio's wheel).
+
+    Other packages may load their own libgdal (pyogrio's wheel does), with a cache of its
+    own: rasterio's is the one in its wheel's ``rasterio.libs``, or the only one loaded.
+    """
     import ctypes
 
     import rasterio  # noqa: F401  (loads libgdal)
@@ -52,8 +56,13 @@ def gdal_cache_bytes() -> int | None:
         return None
     libs = {line.split()[-1] for line in maps.read_text().splitlines()
             if "libgdal" in line.split()[-1]}
-    if len(libs) != 1:
+    wheel = [p for p in libs if Path(p).parent.name == "rasterio.libs"]
+    if len(wheel) == 1:
+        path = wheel[0]
+    elif len(libs) == 1:
+        path = libs.pop()
+    else:
         return None
-    lib = ctypes.CDLL(libs.pop())
+    lib = ctypes.CDLL(path)
     lib.GDALGetCacheMax64.restype = ctypes.c_int64
     return int(lib.GDALGetCacheMax64())
