@@ -12,7 +12,8 @@ UAV image and the scene, calibrates Q by Laplacian variance, and is scored by th
 benchmark's own measures (exact effect names; its own spectral error).
 
 Development extension (tuning allowed): seeds 5000-5999, cases with a forced effect set and
-Q range drawn from ``EXTENSION_RECIPES`` (case k: seed 5000 + k, recipe k mod its length),
+Q range drawn from ``EXTENSION_RECIPES`` (case k: seed 5000 + offset + k, recipe k mod its
+length; offsets in ``EXTENSION_SEED_OFFSET``),
 for failure kinds the development half holds few of. They never change the halves' cases.
 
 Run: python benchmarks/diagnose_independent.py [--cases N] [--only development|validation]
@@ -60,7 +61,23 @@ EXTENSION_RECIPES: dict[str, list[tuple[tuple[str, ...], tuple[float, float] | N
         (("compression",), None),
         (("scene_change",), (0.8, 1.5)),
     ],
+    # "isoblur": the isotropic roll-offs the validation half missed at high Q (detector
+    # under a wide optical PSF, alone, with noise, with resampling; resampling with noise;
+    # atmosphere at high Q and at low Q with resampling and noise), and false-claim checks
+    # at high Q (the paper's model alone, noise alone)
+    "isoblur": [
+        (("detector_integration",), (2.0, 4.5)),
+        (("detector_integration", "sensor_noise"), (2.0, 4.5)),
+        (("detector_integration", "resampling"), (1.5, 4.5)),
+        (("resampling", "sensor_noise"), None),
+        (("atmospheric_blur",), (2.5, 4.5)),
+        (("atmospheric_blur", "resampling", "sensor_noise"), (0.8, 1.5)),
+        ((), (2.0, 4.5)),
+        (("sensor_noise",), (2.0, 4.5)),
+    ],
 }
+#: first seed of each recipe's cases (5000 + offset + k), so recipes do not share seeds
+EXTENSION_SEED_OFFSET = {"noise": 0, "isoblur": 200}
 
 
 def diagnose_case(case: gen.Case) -> dict[str, Any]:
@@ -91,10 +108,11 @@ def diagnose_case(case: gen.Case) -> dict[str, Any]:
 
 
 def extension_kw(recipe: str, k: int) -> dict[str, Any]:
-    """make_case keywords of development-extension case ``k`` (seed 5000 + k)."""
+    """make_case keywords of development-extension case ``k`` (seed 5000 + offset + k)."""
     recipes = EXTENSION_RECIPES[recipe]
     effects, q_range = recipes[k % len(recipes)]
-    return {"base_seed": gen.EXTENSION_SEEDS[0], "effects": effects, "q_range": q_range}
+    return {"base_seed": gen.EXTENSION_SEEDS[0] + EXTENSION_SEED_OFFSET[recipe],
+            "effects": effects, "q_range": q_range}
 
 
 def run(indices: list[int], sources: list[gen.Source],
@@ -161,7 +179,8 @@ def main() -> None:
     if not sources:
         sys.exit(f"no real images under {REAL}; set GEOSIM_REALDATA")
     if args.extension:
-        n_ext = gen.EXTENSION_SEEDS[1] - gen.EXTENSION_SEEDS[0] + 1
+        n_ext = (gen.EXTENSION_SEEDS[1] - gen.EXTENSION_SEEDS[0] + 1
+                 - EXTENSION_SEED_OFFSET[args.extension])
         if not 0 < args.extension_cases <= n_ext:
             sys.exit(f"--extension-cases: 1-{n_ext}")
         if Path(args.out).resolve().parent == (ROOT / "benchmarks" / "results").resolve() \
@@ -170,7 +189,8 @@ def main() -> None:
         recipe = args.extension
         return _write(args.out, run(list(range(args.extension_cases)), sources,
                                     lambda k: extension_kw(recipe, k)),
-                      sources, time.time(), f"extension '{recipe}': 5000 + k")
+                      sources, time.time(), f"extension '{recipe}': "
+                      f"{gen.EXTENSION_SEEDS[0] + EXTENSION_SEED_OFFSET[recipe]} + k")
     dev = DEVELOPMENT[:args.cases]
     idx = {"development": dev, "validation": VALIDATION}.get(args.only, dev + VALIDATION)
     if args.indices:

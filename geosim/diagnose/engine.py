@@ -26,7 +26,7 @@ from scipy import ndimage
 from geosim.diagnose import locate
 from geosim.diagnose.coregister import AffineEstimate, estimate_affine, estimate_shift
 from geosim.diagnose.effects import BLUR_EFFECTS
-from geosim.diagnose.exact import ExactBlocks, ExactSimulations, duel, exact_fit
+from geosim.diagnose.exact_family import EXACT_FAMILIES, exact_duel
 from geosim.diagnose.fit import (
     SpectralData,
     build_spectral_data,
@@ -45,12 +45,8 @@ from geosim.diagnose.model import (
 from geosim.diagnose.noise import estimate_noise
 from geosim.diagnose.seam import find_gain_step
 from geosim.diagnose.select import (
-    AMBIGUITY_CV,
-    BLUR_FAMILY,
-    MIN_CV_GAIN,
     MIN_DELTA_BIC,
     AcceptedEffect,
-    Alternative,
     BlurSelection,
     at_bound,
     clearly_present,
@@ -554,54 +550,18 @@ def _spectral_setup(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo
 
 def _exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
                        ) -> BlurSelection:
-    """Choose the anisotropic blur by the exact (window-aware) model and refit the chosen
-    blur with it (:mod:`geosim.diagnose.exact`).
+    """Choose the anisotropic, then the isotropic blur by the exact (window-aware) model
+    and refit the chosen blurs with it (:mod:`geosim.diagnose.exact_family`).
 
     The fast fit sees every blur through the Welch window's leakage, which smooths a sinc
-    towards a Gaussian and shortens it; between ``motion_smear`` and
-    ``off_nadir_anisotropy`` — the same family, told apart only by the shape of the
-    roll-off — the exact model's held-out χ² decides. The chosen effects, Q and gain are
-    then the exact model's joint fit (on all blocks)."""
-    k = next((i for i, st in enumerate(sel.steps)
-              if BLUR_FAMILY.get(st.name) == "anisotropic"), None)
-    if k is None:
-        return sel
-    old = sel.steps[k].name
-    members = [c for c, fam in BLUR_FAMILY.items() if fam == "anisotropic"]
-    others = [n for n in sel.final.effects if n != old]
-    qs = (sel.final.q, inp.q_base)
-    starts = {m: fit_transfer(setup.full, [*others, m], q_starts=qs) for m in members}
-    without = fit_transfer(setup.full, others, q_starts=qs) if others else sel.null
-    sims = ExactSimulations(setup.sims_grey, setup.q_grid)
-    full = ExactBlocks.build(sims, inp.grey, setup.origins, setup.block_px)
+    towards a Gaussian (``motion_smear`` / ``off_nadir_anisotropy``) and the detector's
+    box towards the atmosphere's roll-off (``detector_integration`` /
+    ``atmospheric_blur``); within each family the exact model's held-out χ² decides. The
+    chosen effects, Q and gain are then the exact model's joint fit (on all blocks)."""
     groups = _folds(setup.origins, setup.block_px, inp.valid.shape)
-    folds = []
-    if len(groups) >= 2:
-        for j, g in enumerate(groups):
-            train = [o for i, gg in enumerate(groups) if i != j for o in gg]
-            folds.append((ExactBlocks.build(sims, inp.grey, train, setup.block_px),
-                          ExactBlocks.build(sims, inp.grey, g, setup.block_px)))
-    res = duel(sims, full, folds, starts, without)
-    ok = [m for m in members if not at_bound(m, res.fits[m].effects[m])
-          and clearly_present(m, res.fits[m].effects[m])]
-    if not ok:
-        return sel
-    best = min(ok, key=res.cv.__getitem__)
-    fit = res.fits[best]
-    gb = res.gains[best]
-    alts = [Alternative(m, float(res.gains[m]), dict(res.fits[m].effects[m])) for m in ok
-            if m != best and res.gains[m] >= MIN_CV_GAIN
-            and gb - res.gains[m] <= AMBIGUITY_CV * gb]
-    n_values = 2 * setup.full.t_real.size
-    dbic = delta_bic(exact_fit(sims, full, without), fit, n_values)
-    sel.steps[k] = AcceptedEffect(best, dbic, float(gb), alts, fit)
-    for j in range(k + 1, len(sel.steps)):
-        st = sel.steps[j]
-        eff = {(best if n == old else n): (dict(fit.effects[best]) if n == old else p)
-               for n, p in st.fit.effects.items()}
-        sel.steps[j] = replace(st, fit=replace(st.fit, effects=eff))
-    sel.cv_gain.update({m: float(v) for m, v in res.gains.items()})
-    sel.final = fit
+    for family in EXACT_FAMILIES:
+        sel = exact_duel(inp.grey, setup.sims_grey, setup.q_grid, setup.full, setup.origins,
+                         groups, setup.block_px, sel, family, inp.q_base)
     return sel
 
 
