@@ -18,7 +18,7 @@ for failure kinds the development half holds few of. They never change the halve
 
 Run: python benchmarks/diagnose_independent.py [--cases N] [--only development|validation]
 (--cases N: the first N development cases; the validation half is always all 32.)
-     python benchmarks/diagnose_independent.py --extension noise [--extension-cases K]
+     python benchmarks/diagnose_independent.py --extension noise|isoblur [--extension-cases K]
      --out /tmp/x.json   (the extension only)
 Writes benchmarks/results/diagnose_independent.json and prints markdown tables.
 """
