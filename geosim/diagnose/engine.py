@@ -42,7 +42,7 @@ from geosim.diagnose.model import (
     RadiometryChoice,
     Registration,
 )
-from geosim.diagnose.noise import estimate_noise
+from geosim.diagnose.noise import estimate_noise, noise_dither
 from geosim.diagnose.seam import find_gain_step
 from geosim.diagnose.select import (
     MIN_DELTA_BIC,
@@ -359,6 +359,9 @@ def _joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel
             break
         ref = _band_affine(model.without(compression=None, seam=None).blurred(inp.simulate),
                            inp.real, inp.valid)
+        dither = noise_dither(model.noise)
+        if dither is not None:  # the scene's JPEG encoded a noisy product: so must the model's
+            ref = dither(ref, 0)
         qual = _match_quality(inp, ref, c.offset_px, fine_step=1)
         if qual > MAX_CLAIMED_QUALITY:
             break
@@ -396,7 +399,9 @@ def _reselect_at_quality(inp: Inputs, model: ForwardModel, quality: int, fit_mas
 def _jpeg_linearised(inp: Inputs, ref: ForwardModel, fit_mask: np.ndarray
                      ) -> JpegTransfer | None:
     """The JPEG of ``ref.compression`` linearised around ``ref`` (blurred, matched to the
-    scene's radiometry): its coherent transfer on the scene's blocks."""
+    scene's radiometry): its coherent transfer on the scene's blocks; with noise claimed
+    in ``ref``, of the JPEG of ``ref`` plus noise realisations (the noise dithers the
+    quantisation)."""
     if ref.compression is None:
         return None
     img = _band_affine(ref.without(compression=None, seam=None).blurred(inp.simulate),
@@ -404,7 +409,8 @@ def _jpeg_linearised(inp: Inputs, ref: ForwardModel, fit_mask: np.ndarray
     origins = block_origins(inp.valid.shape, block_px=inp.block_px, valid=fit_mask)
     if len(origins) < 4:
         origins = block_origins(inp.valid.shape, block_px=inp.block_px, valid=inp.valid)
-    return jpeg_transfer(img, ref.compression.apply, origins, inp.block_px, _grey)
+    return jpeg_transfer(img, ref.compression.apply, origins, inp.block_px, _grey,
+                         dither=noise_dither(ref.noise))
 
 
 def jpeg_step_scale(quality: int) -> float:
@@ -437,6 +443,51 @@ def _jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetu
     if any(n in alt_sel.final.effects for n in ISOTROPIC):
         return model, setup, sel
     return alt, alt_setup, alt_sel
+
+
+def _estimate_noise(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
+                    fit_mask: np.ndarray) -> ForwardModel:
+    """``model`` with the noise of the real scene beyond its deterministic part."""
+    comp = model.compression
+    return model.without(noise=estimate_noise(
+        inp.real, model.deterministic(inp.simulate), fit_mask, origins=setup.origins,
+        block_px=setup.block_px, quantized=inp.quantized,
+        uncompressed=(model.without(compression=None).deterministic(inp.simulate)
+                      if comp is not None else None),
+        block_offset_px=comp.offset_px if comp is not None else (0, 0)))
+
+
+def _dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
+                    fit_mask: np.ndarray, q_lo: float, q_hi: float,
+                    candidates: tuple[str, ...], q_starts: tuple[float, float]
+                    ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """Under JPEG with noise claimed: quality and blur refitted with the noise in the model.
+
+    The scene's JPEG encoded a noisy product; noise dithers the quantisation, so the JPEG
+    keeps more of the high frequencies (and leaves more block-edge steps) than it does on
+    the noise-free model the first fit linearised it around. That fit therefore saw the
+    JPEG too lossy and its quality too coarse, and blurred too little. The quality, the
+    JPEG's linearised transfer, the blur, the radiometry and the noise are fitted again
+    with noise realisations of the estimate before the JPEG; the refit is kept only if the
+    noise is still claimed against it."""
+    if model.compression is None or model.noise is None or not model.noise.claimed:
+        return model, setup, sel
+    start = model.without(radiometry=None)
+    m2, setup2, sel2 = _joint_jpeg_blur(inp, start, setup, sel, fit_mask, q_lo, q_hi,
+                                        candidates, q_starts)
+    if sel2 is sel:  # quality at the null end: nothing refitted
+        return model, setup, sel
+    m2, setup2, sel2 = _jpeg_robust_isotropic(inp, m2, setup2, sel2, fit_mask, q_lo, q_hi,
+                                              candidates, q_starts)
+    fast_final = sel2.final
+    sel2 = _exact_anisotropic(inp, setup2, sel2)
+    if sel2.final is not fast_final:
+        m2 = _adopt(m2, sel2)
+    m2 = _estimate_noise(inp, _fit_radiometry(inp, m2.without(seam=None), fit_mask), setup2,
+                         fit_mask)
+    if m2.noise is None or not m2.noise.claimed:
+        return model, setup, sel
+    return m2, setup2, sel2
 
 
 def _affine_residual(model_g: np.ndarray, real_g: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -881,13 +932,9 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         # block steps (they stand out once the blur is modelled)
         model = model.without(compression=_find_compression(
             inp, reg, model_img=model.deterministic(simulate)))
-    comp = model.compression
-    model = model.without(noise=estimate_noise(
-        inp.real, model.deterministic(simulate), fit_mask, origins=setup.origins,
-        block_px=setup.block_px, quantized=inp.quantized,
-        uncompressed=(model.without(compression=None).deterministic(simulate)
-                      if comp is not None else None),
-        block_offset_px=comp.offset_px if comp is not None else (0, 0)))
+    model = _estimate_noise(inp, model, setup, fit_mask)
+    model, setup, sel = _dithered_refit(inp, model, setup, sel, fit_mask, q_lo, q_hi,
+                                        blur_candidates, q_starts)
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
     det = model.deterministic(simulate)

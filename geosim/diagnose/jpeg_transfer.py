@@ -15,6 +15,14 @@ H_J(f) = S_{J(m) m} / S_{m m} on the scene's blocks is the fraction of each freq
 the JPEG passes *for content as blurred as the scene*. Simulations filtered by H_J
 stand in for "blur, then JPEG" in the transfer fit; the reference is updated as the
 blur is refined (:func:`geosim.diagnose.engine._joint_jpeg_blur`).
+
+**Noise dithers the quantisation.** Noise added before the JPEG moves coefficients that
+would be zeroed across their bin edges, so on average the JPEG of (model + noise) keeps
+more of the model's high frequencies than the JPEG of the model alone (Pillow, quality 30,
+σ 6 DN: transfer at 0.25–0.3 cycles/px 0.456 without noise, 0.490 with it). When noise is
+claimed, H_J is therefore measured on noise realisations, H_J = Σ F(J(m + n)) F(m)* /
+Σ |F(m)|² (``dither``): the noise is independent of m, so the cross-spectrum keeps only
+the part of the JPEG'd noisy product that is coherent with the model.
 """
 
 from __future__ import annotations
@@ -28,7 +36,10 @@ from scipy import ndimage
 from geosim.diagnose.spectra import hann2d
 from geosim.physics import otf
 
-__all__ = ["JpegTransfer", "jpeg_transfer"]
+__all__ = ["JpegTransfer", "jpeg_transfer", "DITHER_REALISATIONS"]
+
+#: noise realisations averaged when the JPEG's transfer is measured under noise
+DITHER_REALISATIONS = 2
 
 
 @dataclass(frozen=True)
@@ -54,25 +65,35 @@ class JpegTransfer:
 
 def jpeg_transfer(reference: np.ndarray, compress: Callable[[np.ndarray], np.ndarray],
                   origins: Sequence[tuple[int, int]], block_px: int,
-                  grey: Callable[[np.ndarray], np.ndarray]) -> JpegTransfer:
+                  grey: Callable[[np.ndarray], np.ndarray], *,
+                  dither: Callable[[np.ndarray, int], np.ndarray] | None = None,
+                  n_dither: int = DITHER_REALISATIONS) -> JpegTransfer:
     """Measure H_J of ``compress`` on ``reference`` (bands first, DN, in the scene's
     radiometry) over the Welch blocks at ``origins``.
 
     H_J = Re Σ F(J(m)) F(m)* / Σ |F(m)|² (grey, Hann-windowed blocks), averaged over the
     four sign quadrants and clipped to [0, 1]: a coherent loss, never a gain.
+
+    ``dither(m, k)``: ``m`` with noise realisation ``k`` added (and rounded as the product
+    is), when the product is noisy before its JPEG; H_J is then the coherent transfer of
+    J(m + n) averaged over ``n_dither`` realisations (noise dithers the quantisation).
     """
-    ref_g = grey(np.asarray(reference, float))
-    jp_g = grey(np.asarray(compress(reference), float))
+    ref = np.asarray(reference, float)
+    ref_g = grey(ref)
+    if dither is None:
+        jpegs = [grey(np.asarray(compress(ref), float))]
+    else:
+        jpegs = [grey(np.asarray(compress(dither(ref, k)), float)) for k in range(n_dither)]
     w = hann2d(block_px)
     num = np.zeros((block_px, block_px), complex)
     den = np.zeros((block_px, block_px))
     for r, c in origins:
         a = ref_g[r:r + block_px, c:c + block_px]
-        b = jp_g[r:r + block_px, c:c + block_px]
         fa = np.fft.fft2((a - a.mean()) * w)
-        fb = np.fft.fft2((b - b.mean()) * w)
-        num += fb * np.conj(fa)
         den += np.abs(fa) ** 2
+        for jp_g in jpegs:
+            b = jp_g[r:r + block_px, c:c + block_px]
+            num += np.fft.fft2((b - b.mean()) * w) * np.conj(fa) / len(jpegs)
     h = np.real(num) / np.maximum(den, 1e-30)
     half = block_px // 2
     quad = np.zeros((half + 1, half + 1))

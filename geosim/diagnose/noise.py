@@ -23,6 +23,8 @@ is the ratio of the estimates from the low-frequency and the other coefficients.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import ndimage
 
@@ -30,9 +32,10 @@ from geosim.diagnose.fit import HANN_CORRELATION, fit_noise
 from geosim.diagnose.jpeg_noise import jpeg_noise_variance
 from geosim.diagnose.model import NoiseEstimate
 from geosim.diagnose.spectra import cross_spectrum
-from geosim.physics.radiometry import LUMA_WEIGHTS, luma
+from geosim.physics.radiometry import LUMA_WEIGHTS, add_sensor_noise, luma
 
-__all__ = ["estimate_noise", "MIN_NOISE_VAR_DN2", "MAX_WHITENESS", "HIGH_BAND", "MID_BAND"]
+__all__ = ["estimate_noise", "noise_dither", "MIN_NOISE_VAR_DN2", "MAX_WHITENESS", "HIGH_BAND",
+           "MID_BAND"]
 
 #: smallest per-band white noise variance worth claiming (DN², rounding removed)
 MIN_NOISE_VAR_DN2 = 1.0
@@ -46,6 +49,24 @@ MAX_WHITENESS = 6.0
 MAX_WHITENESS_COMPRESSED = 3.0
 HIGH_BAND = (0.3, 0.5)
 MID_BAND = (0.1, 0.25)
+
+
+def noise_dither(est: NoiseEstimate | None, seed: int = 0
+                 ) -> Callable[[np.ndarray, int], np.ndarray] | None:
+    """``dither(img, k)``: ``img`` (bands first, DN, the scene's radiometry) plus noise
+    realisation ``k`` of the claimed noise ``est`` (seeded by ``seed`` and ``k``, so
+    repeated calls give the same realisation); None when no noise is claimed.
+
+    Used where the JPEG acts on the noisy product and its noise-free simulation would be
+    biased: the noise dithers the quantisation (:mod:`geosim.diagnose.jpeg_transfer`)."""
+    if est is None or not est.claimed:
+        return None
+
+    def dither(img: np.ndarray, k: int) -> np.ndarray:
+        rng = np.random.default_rng([int(seed), int(k)])
+        return add_sensor_noise(img, gain_dn=est.gain_dn, read_var_dn2=est.read_var_dn2,
+                                rng=rng)
+    return dither
 
 
 def _hp_factor(sigma: float) -> float:
