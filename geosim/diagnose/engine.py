@@ -34,6 +34,7 @@ from geosim.diagnose.fit import (
     fit_radiometry,
     fit_transfer,
 )
+from geosim.diagnose.jpeg_noise import MIN_LATTICE_GAIN, lattice_evidence
 from geosim.diagnose.jpeg_transfer import JpegTransfer, jpeg_transfer
 from geosim.diagnose.model import (
     Claim,
@@ -309,6 +310,8 @@ def _find_compression(inp: Inputs, reg: Registration, model_img: np.ndarray | No
             and min(blk["row_z"], blk["col_z"]) > MIN_BLOCK_Z):
         return None
     offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
+    if lattice_evidence(inp.grey, offset, inp.valid) < MIN_LATTICE_GAIN:
+        return None  # steps without the JPEG's quantisation lattice: a structured residual
     quality = _match_quality(inp, base_aff, offset)
     if quality > MAX_CLAIMED_QUALITY:  # at the null end of its range: no compression shown
         return None

@@ -1,0 +1,92 @@
+"""JPEG of a noisy product: noise dithers the quantisation; the JPEG's own lattice.
+
+Scenes from ``benchmarks/diagnose_generator.py`` (no geosim code: Poisson-Gaussian noise,
+whole DN, JPEG through Pillow). The truth is the generator's quality and whether it
+compressed at all.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import diagnose_generator as gen  # noqa: E402
+
+from geosim.diagnose import engine  # noqa: E402
+from geosim.diagnose.jpeg_noise import MIN_LATTICE_GAIN, lattice_evidence  # noqa: E402
+from geosim.diagnose.model import NoiseEstimate  # noqa: E402
+from geosim.diagnose.noise import noise_dither  # noqa: E402
+from geosim.diagnose.simulate import QSimulator  # noqa: E402
+
+
+def _scene(q: float, truth: dict, seed: int, sat_px: int = 96):
+    rng = np.random.default_rng(seed)
+    ground = gen.synthetic_ground(rng, (sat_px + 24) * gen.PHI)
+    return gen.render(ground, q, truth, rng, margin_px=12)
+
+
+def _noise(gain_dn: float, read_var_dn2: float) -> NoiseEstimate:
+    return NoiseEstimate(gain_dn=gain_dn, read_var_dn2=read_var_dn2, gain_sigma=0.0,
+                         read_sigma=0.0, white_var_dn2=read_var_dn2, whiteness=1.0,
+                         claimed=True, quantization_dn2=1 / 12)
+
+
+def test_quality_of_a_noisy_jpeg_is_matched_only_with_noise_in_the_model():
+    """Noise before the JPEG leaves more block-edge steps: matched on the noise-free model
+    (the right Q) the quality comes out too coarse; with a realisation of the generator's
+    noise added to the model before its JPEG, it is Pillow's quality."""
+    q_true, quality, gain, read = 2.5, 50, 0.15, 8.0
+    uav, real = _scene(q_true, {"compression": {"quality": quality},
+                                "sensor_noise": {"gain_dn": gain, "read_var_dn2": read}}, 7)
+    sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
+    inp = engine._inputs(real, sim, q_true, None, None, None, 0.5)
+    model = engine._band_affine(sim(q_true), real, inp.valid)
+    blk = engine.blockiness(engine._grey(real - model), inp.valid)
+    offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
+    quiet = engine._match_quality(inp, model, offset, fine_step=1)
+    dither = noise_dither(_noise(gain, read))
+    assert dither is not None
+    noisy = engine._match_quality(inp, dither(model, 0), offset, fine_step=1)
+    assert abs(noisy - quality) <= 6, noisy
+    assert quiet < noisy - 6, (quiet, noisy)
+
+
+def test_no_dither_without_claimed_noise():
+    assert noise_dither(None) is None
+    n = _noise(0.1, 5.0)
+    n.claimed = False
+    assert noise_dither(n) is None
+
+
+def test_block_steps_without_a_lattice_are_not_compression():
+    """An uncompressed scene with 8-periodic steps added (a structured residual that is not
+    a JPEG: a tiled brightness pattern, 3 DN) passes the block-step test but has no
+    quantisation lattice in its DCT coefficients, so no compression is claimed; Pillow's
+    JPEG of the same scene at quality 40 and 65 has the lattice and is claimed."""
+    q_true = 1.5
+    uav, real = _scene(q_true, {}, 11)
+    sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
+    rows, cols = real.shape[-2:]
+    tiles = 3.0 * (((np.arange(rows)[:, None] // 8) + (np.arange(cols)[None] // 8)) % 2)
+    stepped = np.clip(np.rint(real + tiles), 0, 255)
+    inp = engine._inputs(stepped, sim, q_true, None, None, None, 0.5)
+    reg = engine._coregister(inp)
+    blk = engine.blockiness(engine._grey(stepped - engine._band_affine(reg.move(inp.base),
+                                                                       stepped, inp.valid)),
+                            inp.valid)
+    assert min(blk["row_ratio"], blk["col_ratio"]) > engine.MIN_BLOCK_RATIO
+    assert min(blk["row_z"], blk["col_z"]) > engine.MIN_BLOCK_Z
+    offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
+    assert lattice_evidence(inp.grey, offset, inp.valid) < MIN_LATTICE_GAIN
+    assert engine._find_compression(inp, reg) is None
+    for quality in (40, 65):
+        jp = gen.jpeg_pillow(np.clip(np.rint(real), 0, 255), quality)
+        inp_j = engine._inputs(jp, sim, q_true, None, None, None, 0.5)
+        assert lattice_evidence(inp_j.grey, (0, 0), inp_j.valid) > MIN_LATTICE_GAIN
+        found = engine._find_compression(inp_j, engine._coregister(inp_j))
+        assert found is not None and abs(found.quality - quality) <= 10, (quality, found)
