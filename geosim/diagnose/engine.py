@@ -34,7 +34,7 @@ from geosim.diagnose.fit import (
     fit_radiometry,
     fit_transfer,
 )
-from geosim.diagnose.jpeg_noise import MIN_LATTICE_GAIN, lattice_evidence
+from geosim.diagnose.jpeg_noise import MIN_LATTICE_GAIN, block_grid, lattice_evidence
 from geosim.diagnose.jpeg_transfer import JpegTransfer, jpeg_transfer
 from geosim.diagnose.model import (
     Claim,
@@ -309,7 +309,10 @@ def _find_compression(inp: Inputs, reg: Registration, model_img: np.ndarray | No
     if not (min(blk["row_ratio"], blk["col_ratio"]) > MIN_BLOCK_RATIO
             and min(blk["row_z"], blk["col_z"]) > MIN_BLOCK_Z):
         return None
-    offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
+    # the JPEG's own trace: its DCT coefficients on a quantisation lattice, on the block
+    # grid where they lie best (the step phase can be off by a few px under a blur misfit)
+    offset = block_grid(inp.grey, inp.valid,
+                        (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8))
     if lattice_evidence(inp.grey, offset, inp.valid) < MIN_LATTICE_GAIN:
         return None  # steps without the JPEG's quantisation lattice: a structured residual
     quality = _match_quality(inp, base_aff, offset)
