@@ -121,6 +121,9 @@ Q_EXTEND = 1.5
 #: ratio of neighbouring Q values of the grid of exact simulations
 Q_GRID_STEP = 1.12
 Q_MAX = 6.0
+#: seed of the noise realisations that compare the dithered refit with the first fit (the
+#: same realisations for both)
+DITHER_SEED = 12345
 #: effects whose smooth isotropic roll-off the JPEG's high-frequency loss can imitate
 ISOTROPIC = ("detector_integration", "atmospheric_blur")
 #: Q within this factor of the bottom of its range counts as pinned there.
@@ -476,7 +479,10 @@ def _dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel:
     JPEG's linearised transfer, the blur, the radiometry and the noise are fitted again
     with noise realisations of the estimate before the JPEG; the refit is kept only if the
     noise is still claimed against it, else the noise is not claimed (development c17: a
-    Q misfit under JPEG read as 2.7 DN² of noise, 0.7 DN² against the refit)."""
+    Q misfit under JPEG read as 2.7 DN² of noise, 0.7 DN² against the refit), and only if
+    the delivered refit's expected power spectrum fits the scene no worse than the first
+    fit's (development extension: without this check a false `resampling` was claimed in
+    two JPEG + noise scenes)."""
     if model.compression is None or model.noise is None or not model.noise.claimed:
         return model, setup, sel
     start = model.without(radiometry=None)
@@ -496,6 +502,15 @@ def _dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel:
         # the noise does not survive a model that accounts for it (a misfit read as noise
         # under the first quality and blur): not claimed, first fit kept
         return model.without(noise=m2.noise), setup, sel
+
+    def expected_se(m: ForwardModel) -> float:
+        # the delivered simulation (JPEG last, on the noisy product): its expected spectrum
+        return spectral_error(_greys(_realisations(inp, m, DITHER_SEED)), inp.grey,
+                              block_px=setup.block_px, origins=setup.origins)
+
+    if expected_se(m2) > expected_se(model):
+        # the refit was made for the power the JPEG keeps under noise; it must show there
+        return model, setup, sel
     return m2, setup2, sel2
 
 
