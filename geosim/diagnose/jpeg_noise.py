@@ -61,10 +61,7 @@ class JpegNoiseFit:
     low-frequency (u + v ≤ 2) and the other coefficients (white noise: equal; a misfit of
     the model: unequal); ``steps``: the 8×8 quantisation steps found (0 = not used);
     ``n_blocks``: blocks used; ``offset_px``: the block grid's phase used (row, col);
-    ``delta_bic``: 2 Δ log-likelihood of ``var_dn2`` against no noise, minus ln(values);
-    ``var_flat_dn2`` / ``var_textured_dn2``: the same estimate from the blocks whose model
-    AC energy is below / above the median (noise is everywhere; a misfit of the model —
-    its blur, a residual shift — scales with the content and sits in the textured blocks).
+    ``delta_bic``: 2 Δ log-likelihood of ``var_dn2`` against no noise, minus ln(values).
     """
 
     var_dn2: float
@@ -74,8 +71,6 @@ class JpegNoiseFit:
     n_blocks: int
     offset_px: tuple[int, int] = (0, 0)
     delta_bic: float = 0.0
-    var_flat_dn2: float = 0.0
-    var_textured_dn2: float = 0.0
 
 
 def block_dct(grey: np.ndarray, offset_px: tuple[int, int], mask: np.ndarray | None = None
@@ -181,21 +176,14 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
     steps[steps >= MAX_STEP] = 0.0
     u, v = np.divmod(np.arange(64), 8)
     low = (u + v) <= 2
-    ac_energy = np.sum(cm[:, 1:] ** 2, axis=1)
-    flat = ac_energy <= np.median(ac_energy)
     ll_low = np.zeros(VAR_GRID_DN2.size)
     ll_high = np.zeros(VAR_GRID_DN2.size)
-    ll_flat = np.zeros(VAR_GRID_DN2.size)
-    ll_tex = np.zeros(VAR_GRID_DN2.size)
     for k in np.flatnonzero(steps > 1):  # a step of 1 is no quantisation: not censored
         q = float(steps[k])
         j = np.rint(cr[:, k] / q)
         spread = 6.0 * float(np.std(cr[:, k]))
-        per = np.stack([_censored_loglik(j, g * cm[:, k], q, spread, VAR_GRID_DN2)
-                        for g in GAIN_GRID])          # (gain, variance, block)
-        ll = np.max(per.sum(axis=2), axis=0)
-        ll_flat += np.max(per[:, :, flat].sum(axis=2), axis=0)
-        ll_tex += np.max(per[:, :, ~flat].sum(axis=2), axis=0)
+        ll = np.max([_censored_loglik(j, g * cm[:, k], q, spread, VAR_GRID_DN2).sum(axis=1)
+                     for g in GAIN_GRID], axis=0)
         if low[k]:
             ll_low += ll
         else:
@@ -210,5 +198,4 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
     v_high = VAR_GRID_DN2[int(np.argmax(ll_high))] if np.any(steps[~low] > 1) else best
     return JpegNoiseFit(float(best), float(v_low), float(v_high),
                         np.where(steps > 1, steps, 0.0).reshape(8, 8), int(cr.shape[0]),
-                        offset_px, dbic, float(VAR_GRID_DN2[int(np.argmax(ll_flat))]),
-                        float(VAR_GRID_DN2[int(np.argmax(ll_tex))]))
+                        offset_px, dbic)
