@@ -78,33 +78,14 @@ def measured(task, scratch: str) -> dict:
     """Run one tile task (output into ``scratch``) as :func:`warp_tile_task` does; the
     task thread's CPU seconds for the read (decode + warp) and the write, the process's
     CPU (user, system) and its minor page faults."""
-    import numpy as np
-    from rasterio.windows import Window
-
-    from geosim.io.raster import create_geotiff, iter_windows
-    from geosim.prepare.tiles import TILE_COMPRESSION_OPTIONS
+    from geosim.prepare.tiles import read_tile, write_tile
 
     dst = str(Path(scratch) / f"{os.getpid()}_t.tif")
     r0, w0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter(), time.thread_time()
-    win = task.tile.window
-    width, height = int(win.width), int(win.height)
     with task.flight.open() as reader:
-        img = np.zeros((reader.count, height, width), dtype=reader.dtype)
-        valid = np.zeros((height, width), dtype=bool)
-        for blk in iter_windows(width, height, block_px=task.block_px):
-            r_0, c_0 = int(blk.row_off), int(blk.col_off)
-            r_1, c_1 = r_0 + int(blk.height), c_0 + int(blk.width)
-            img[:, r_0:r_1, c_0:c_1], valid[r_0:r_1, c_0:c_1] = reader.read(Window(
-                int(win.col_off) + c_0, int(win.row_off) + r_0, c_1 - c_0, r_1 - r_0))
+        img, valid = read_tile(reader, task.tile.window, task.block_px)
         t1 = time.thread_time()
-        with create_geotiff(dst, width=width, height=height, count=reader.count,
-                            dtype=reader.dtype, crs=reader.crs, transform=task.tile.transform,
-                            band_descriptions=reader.descriptions, tags=task.tags,
-                            internal_mask=True,
-                            cog_overrides=TILE_COMPRESSION_OPTIONS[task.compression]) as out:
-            out.colorinterp = reader.colorinterp
-            out.write(img)
-            out.write_mask(np.where(valid, 255, 0).astype(np.uint8))
+        write_tile(reader, task, dst, img, valid)
     t2 = time.thread_time()
     r1, w1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
     return {"read_thread_s": round(t1 - t0, 3), "write_thread_s": round(t2 - t1, 3),

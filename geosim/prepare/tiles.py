@@ -112,28 +112,42 @@ def warp_tile_task(task: WarpTileTask) -> str:
     Memory: the tile (bands × tile_px²) plus one ``block_px``² block's coordinates and
     source window.
     """
-    from geosim.io.raster import iter_windows
-
-    win = task.tile.window
-    width, height = int(win.width), int(win.height)
     with naming_read_failures(task.flight.warp.src_path if task.flight.warp is not None
                                else str(task.flight.path)), task.flight.open() as reader:
-        img = np.zeros((reader.count, height, width), dtype=reader.dtype)
-        valid = np.zeros((height, width), dtype=bool)
-        for blk in iter_windows(width, height, block_px=task.block_px):
-            r0, c0 = int(blk.row_off), int(blk.col_off)
-            r1, c1 = r0 + int(blk.height), c0 + int(blk.width)
-            img[:, r0:r1, c0:c1], valid[r0:r1, c0:c1] = reader.read(Window(
-                int(win.col_off) + c0, int(win.row_off) + r0, c1 - c0, r1 - r0))
-        with create_geotiff(task.dst_path, width=width, height=height, count=reader.count,
-                            dtype=reader.dtype, crs=reader.crs, transform=task.tile.transform,
-                            band_descriptions=reader.descriptions, tags=task.tags,
-                            internal_mask=True,
-                            cog_overrides=TILE_COMPRESSION_OPTIONS[task.compression]) as dst:
-            dst.colorinterp = reader.colorinterp
-            dst.write(img)
-            dst.write_mask(np.where(valid, 255, 0).astype(np.uint8))
+        img, valid = read_tile(reader, task.tile.window, task.block_px)
+        write_tile(reader, task, task.dst_path, img, valid)
     return str(task.dst_path)
+
+
+def read_tile(reader: Any, window: Window, block_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The tile ``window`` of an open flight reader, read ``block_px``² blocks at a time:
+    the ``(bands, rows, cols)`` image and its boolean valid mask."""
+    from geosim.io.raster import iter_windows
+
+    width, height = int(window.width), int(window.height)
+    img = np.zeros((reader.count, height, width), dtype=reader.dtype)
+    valid = np.zeros((height, width), dtype=bool)
+    for blk in iter_windows(width, height, block_px=block_px):
+        r0, c0 = int(blk.row_off), int(blk.col_off)
+        r1, c1 = r0 + int(blk.height), c0 + int(blk.width)
+        img[:, r0:r1, c0:c1], valid[r0:r1, c0:c1] = reader.read(Window(
+            int(window.col_off) + c0, int(window.row_off) + r0, c1 - c0, r1 - r0))
+    return img, valid
+
+
+def write_tile(reader: Any, task: WarpTileTask, dst_path: str, img: np.ndarray,
+               valid: np.ndarray) -> None:
+    """Write a read tile as the task's COG at ``dst_path`` (the reader gives band count,
+    type, CRS, descriptions and colour interpretation)."""
+    height, width = valid.shape
+    with create_geotiff(dst_path, width=width, height=height, count=reader.count,
+                        dtype=reader.dtype, crs=reader.crs, transform=task.tile.transform,
+                        band_descriptions=reader.descriptions, tags=task.tags,
+                        internal_mask=True,
+                        cog_overrides=TILE_COMPRESSION_OPTIONS[task.compression]) as dst:
+        dst.colorinterp = reader.colorinterp
+        dst.write(img)
+        dst.write_mask(np.where(valid, 255, 0).astype(np.uint8))
 
 
 @dataclass(frozen=True)
