@@ -434,6 +434,21 @@ def jpeg_quality_for_scale(scale: float) -> int:
     return int(np.clip(round(q), 1, 100))
 
 
+def _robust_then_exact(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
+                       sel: BlurSelection, fit_mask: np.ndarray, q_lo: float, q_hi: float,
+                       candidates: tuple[str, ...], q_starts: tuple[float, float]
+                       ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """The JPEG-robust isotropic check, then the exact window-aware family decisions; the
+    model adopts the exact decision's blur where it changed the fast fit's."""
+    model, setup, sel = _jpeg_robust_isotropic(inp, model, setup, sel, fit_mask, q_lo, q_hi,
+                                               candidates, q_starts)
+    fast_final = sel.final
+    sel = _exact_anisotropic(inp, setup, sel)
+    if sel.final is not fast_final:
+        model = _adopt(model, sel)
+    return model, setup, sel
+
+
 def _jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
                            sel: BlurSelection, fit_mask: np.ndarray, q_lo: float, q_hi: float,
                            candidates: tuple[str, ...], q_starts: tuple[float, float]
@@ -490,12 +505,8 @@ def _dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel:
                                         candidates, q_starts)
     if sel2 is sel:  # quality at the null end: nothing refitted
         return model, setup, sel
-    m2, setup2, sel2 = _jpeg_robust_isotropic(inp, m2, setup2, sel2, fit_mask, q_lo, q_hi,
-                                              candidates, q_starts)
-    fast_final = sel2.final
-    sel2 = _exact_anisotropic(inp, setup2, sel2)
-    if sel2.final is not fast_final:
-        m2 = _adopt(m2, sel2)
+    m2, setup2, sel2 = _robust_then_exact(inp, m2, setup2, sel2, fit_mask, q_lo, q_hi,
+                                          candidates, q_starts)
     m2 = _estimate_noise(inp, _fit_radiometry(inp, m2.without(seam=None), fit_mask), setup2,
                          fit_mask)
     if m2.noise is None or not m2.noise.claimed:
@@ -944,12 +955,8 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model = _adopt(model, sel)
     model, setup, sel = _joint_jpeg_blur(inp, model, setup, sel, fit_mask, q_lo, q_hi,
                                          blur_candidates, q_starts)
-    model, setup, sel = _jpeg_robust_isotropic(inp, model, setup, sel, fit_mask, q_lo, q_hi,
-                                               blur_candidates, q_starts)
-    fast_final = sel.final
-    sel = _exact_anisotropic(inp, setup, sel)
-    if sel.final is not fast_final:
-        model = _adopt(model, sel)
+    model, setup, sel = _robust_then_exact(inp, model, setup, sel, fit_mask, q_lo, q_hi,
+                                           blur_candidates, q_starts)
     model = _fit_radiometry(inp, model, fit_mask)
     if model.compression is None:
         # second look, against the refined model: the baseline's blur misfit can hide the
