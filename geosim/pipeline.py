@@ -49,8 +49,9 @@ from geosim.result import StepResult
 from geosim.rundir import RunDir
 from geosim.validate import check_out_dir, preflight
 
-#: GDAL block cache of every run, MB (GDAL's default is 5 % of RAM): bounds memory.
-GDAL_CACHE_MB = 256
+#: GDAL block cache of every run, MB (GDAL's default is 5 % of RAM): bounds memory; the
+#: same cache in the driver as in a worker (:data:`geosim.engine.WORKER_GDAL_CACHEMAX_MB`).
+GDAL_CACHE_MB = engine.WORKER_GDAL_CACHEMAX_MB
 
 
 def gdal_environment() -> rasterio.Env:
