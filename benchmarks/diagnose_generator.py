@@ -289,17 +289,17 @@ def luma(img: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- cases
-# Splits by seed. Round 3 (this one): the validation half is the EVEN seeds 1064-1126,
-# drawn only for round 3's final report; every other seed of 1000-1127 is development
-# (1000-1063: round 1's two halves, seen while tuning; the odd seeds 1065-1127: round 2's
-# validation half, seen in its final report).
-VALIDATION_FIRST_SEED = 1064
-VALIDATION_LAST_SEED = 1126
+# Splits by seed. Round 4 (this one): the validation half is seeds 1128-1159, drawn only
+# for round 4's final report; every seed of 1000-1127 is development (1000-1063: round 1's
+# two halves, seen while tuning; odd 1065-1127: round 2's validation half; even 1064-1126:
+# round 3's validation half, each seen in its round's final report).
+VALIDATION_FIRST_SEED = 1128
+VALIDATION_LAST_SEED = 1159
 
 
 def is_validation_seed(seed: int) -> bool:
-    """Whether ``seed`` belongs to the (round 3) validation half."""
-    return VALIDATION_FIRST_SEED <= seed <= VALIDATION_LAST_SEED and seed % 2 == 0
+    """Whether ``seed`` belongs to the (round 4) validation half."""
+    return VALIDATION_FIRST_SEED <= seed <= VALIDATION_LAST_SEED
 
 
 #: development extension (tuning allowed): seeds 5000-5999, cases drawn with a forced

@@ -44,8 +44,9 @@ import diagnose_generator as gen  # noqa: E402
 
 REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
 SAMPLES = ROOT / "data" / "samples"
-N_VALIDATION_LAST = 127
-#: case indices (seed 1000 + i) of the two halves (round 3: validation = even 64-126)
+N_VALIDATION_LAST = 159
+#: case indices (seed 1000 + i) of the two halves (round 4: development 0-127,
+#: validation 128-159)
 DEVELOPMENT = [i for i in range(N_VALIDATION_LAST + 1) if not gen.is_validation_seed(1000 + i)]
 VALIDATION = [i for i in range(N_VALIDATION_LAST + 1) if gen.is_validation_seed(1000 + i)]
 N_CASES = len(DEVELOPMENT)
@@ -195,12 +196,11 @@ def main() -> None:
     idx = {"development": dev, "validation": VALIDATION}.get(args.only, dev + VALIDATION)
     if args.indices:
         if set(args.indices) - set(DEVELOPMENT):
-            sys.exit("--indices: development cases only (0-63 and the odd 65-127)")
+            sys.exit("--indices: development cases only (0-127)")
         idx = args.indices
     t0 = time.time()
     _write(args.out, run(idx, sources), sources, t0,
-           "1000 + i; development 1000-1063 and odd 1065-1127, validation even 1064-1126 "
-           "(round 3)")
+           "1000 + i; development 1000-1127, validation 1128-1159 (round 4)")
 
 
 def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
