@@ -166,7 +166,7 @@ def main() -> None:
                     help="number of development cases (the first N)")
     ap.add_argument("--only", choices=("development", "validation"))
     ap.add_argument("--indices", type=lambda t: [int(v) for v in t.split(",")],
-                    help="comma-separated development case indices (0-63, odd 65-127), "
+                    help="comma-separated development case indices (0-127), "
                          "e.g. to rerun the failures")
     ap.add_argument("--extension", choices=sorted(EXTENSION_RECIPES),
                     help="run only the development extension (seeds 5000-5999) with these "
