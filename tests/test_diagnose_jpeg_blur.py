@@ -16,25 +16,32 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_generator as gen  # noqa: E402
 
-from geosim.diagnose import engine  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
+from geosim.diagnose.stage_inputs import grey, make_inputs  # noqa: E402
+from geosim.diagnose.stage_jpeg import (  # noqa: E402
+    blockiness,
+    jpeg_quality_for_scale,
+    jpeg_step_scale,
+    match_quality,
+)
+from geosim.diagnose.stage_radiometry import band_affine  # noqa: E402
 
 
 @pytest.mark.parametrize(("quality", "scale"), [(25, 200.0), (50, 100.0), (75, 50.0),
                                                 (10, 500.0), (90, 20.0)])
 def test_jpeg_step_scale_is_the_ijg_scaling(quality, scale):
     # IJG (libjpeg, Pillow, OpenCV): 5000/q below 50, 200 - 2q from 50 up (percent)
-    assert engine.jpeg_step_scale(quality) == pytest.approx(scale)
-    assert engine.jpeg_quality_for_scale(scale) == quality
+    assert jpeg_step_scale(quality) == pytest.approx(scale)
+    assert jpeg_quality_for_scale(scale) == quality
 
 
 def test_coarser_steps_mean_lower_quality():
     for q in (20, 33, 48, 55, 70):
-        q_low = engine.jpeg_quality_for_scale(1.25 * engine.jpeg_step_scale(q))
+        q_low = jpeg_quality_for_scale(1.25 * jpeg_step_scale(q))
         assert q_low < q
         # 25 % coarser steps: e.g. 40 -> 32, 60 -> 50
-        assert engine.jpeg_step_scale(q_low) == pytest.approx(
-            1.25 * engine.jpeg_step_scale(q), rel=0.06)
+        assert jpeg_step_scale(q_low) == pytest.approx(
+            1.25 * jpeg_step_scale(q), rel=0.06)
 
 
 def _jpeg_scene(q: float, quality: int, seed: int, sat_px: int = 96):
@@ -52,13 +59,12 @@ def test_quality_matched_on_the_right_model_and_biased_on_a_sharper_one():
     q_true, quality = 3.0, 40
     uav, real = _jpeg_scene(q_true, quality, seed=21)
     sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
-    inp = engine._inputs(real, sim, q_true, None, None, None, 0.5)
-    blk = engine.blockiness(engine._grey(real - engine._band_affine(sim(q_true), real,
-                                                                     inp.valid)), inp.valid)
+    inp = make_inputs(real, sim, q_true, None, None, None, 0.5)
+    blk = blockiness(grey(real - band_affine(sim(q_true), real, inp.valid)), inp.valid)
     offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
-    right = engine._match_quality(inp, engine._band_affine(sim(q_true), real, inp.valid),
-                                  offset, fine_step=1)
-    sharp = engine._match_quality(inp, engine._band_affine(sim(0.6 * q_true), real, inp.valid),
-                                  offset, fine_step=1)
+    right = match_quality(inp, band_affine(sim(q_true), real, inp.valid),
+                          offset, fine_step=1)
+    sharp = match_quality(inp, band_affine(sim(0.6 * q_true), real, inp.valid),
+                          offset, fine_step=1)
     assert abs(right - quality) <= 6, right
     assert sharp > right + 4, (sharp, right)

@@ -17,11 +17,20 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_generator as gen  # noqa: E402
 
-from geosim.diagnose import engine  # noqa: E402
 from geosim.diagnose.jpeg_noise import MIN_LATTICE_GAIN, lattice_evidence  # noqa: E402
 from geosim.diagnose.model import NoiseEstimate  # noqa: E402
 from geosim.diagnose.noise import noise_dither  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
+from geosim.diagnose.stage_inputs import grey, make_inputs  # noqa: E402
+from geosim.diagnose.stage_jpeg import (  # noqa: E402
+    MIN_BLOCK_RATIO,
+    MIN_BLOCK_Z,
+    blockiness,
+    find_compression,
+    match_quality,
+)
+from geosim.diagnose.stage_radiometry import band_affine  # noqa: E402
+from geosim.diagnose.stage_register import coregister  # noqa: E402
 
 
 def _scene(q: float, truth: dict, seed: int, sat_px: int = 96):
@@ -44,14 +53,14 @@ def test_quality_of_a_noisy_jpeg_is_matched_only_with_noise_in_the_model():
     uav, real = _scene(q_true, {"compression": {"quality": quality},
                                 "sensor_noise": {"gain_dn": gain, "read_var_dn2": read}}, 7)
     sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
-    inp = engine._inputs(real, sim, q_true, None, None, None, 0.5)
-    model = engine._band_affine(sim(q_true), real, inp.valid)
-    blk = engine.blockiness(engine._grey(real - model), inp.valid)
+    inp = make_inputs(real, sim, q_true, None, None, None, 0.5)
+    model = band_affine(sim(q_true), real, inp.valid)
+    blk = blockiness(grey(real - model), inp.valid)
     offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
-    quiet = engine._match_quality(inp, model, offset, fine_step=1)
+    quiet = match_quality(inp, model, offset, fine_step=1)
     dither = noise_dither(_noise(gain, read))
     assert dither is not None
-    noisy = engine._match_quality(inp, dither(model, 0), offset, fine_step=1)
+    noisy = match_quality(inp, dither(model, 0), offset, fine_step=1)
     assert abs(noisy - quality) <= 6, noisy
     assert quiet < noisy - 6, (quiet, noisy)
 
@@ -74,19 +83,18 @@ def test_block_steps_without_a_lattice_are_not_compression():
     rows, cols = real.shape[-2:]
     tiles = 3.0 * (((np.arange(rows)[:, None] // 8) + (np.arange(cols)[None] // 8)) % 2)
     stepped = np.clip(np.rint(real + tiles), 0, 255)
-    inp = engine._inputs(stepped, sim, q_true, None, None, None, 0.5)
-    reg = engine._coregister(inp)
-    blk = engine.blockiness(engine._grey(stepped - engine._band_affine(reg.move(inp.base),
-                                                                       stepped, inp.valid)),
-                            inp.valid)
-    assert min(blk["row_ratio"], blk["col_ratio"]) > engine.MIN_BLOCK_RATIO
-    assert min(blk["row_z"], blk["col_z"]) > engine.MIN_BLOCK_Z
+    inp = make_inputs(stepped, sim, q_true, None, None, None, 0.5)
+    reg = coregister(inp)
+    blk = blockiness(grey(stepped - band_affine(reg.move(inp.base), stepped, inp.valid)),
+                     inp.valid)
+    assert min(blk["row_ratio"], blk["col_ratio"]) > MIN_BLOCK_RATIO
+    assert min(blk["row_z"], blk["col_z"]) > MIN_BLOCK_Z
     offset = (int(blk["row_phase"]) % 8, int(blk["col_phase"]) % 8)
     assert lattice_evidence(inp.grey, offset, inp.valid) < MIN_LATTICE_GAIN
-    assert engine._find_compression(inp, reg) is None
+    assert find_compression(inp, reg) is None
     for quality in (40, 65):
         jp = gen.jpeg_pillow(np.clip(np.rint(real), 0, 255), quality)
-        inp_j = engine._inputs(jp, sim, q_true, None, None, None, 0.5)
+        inp_j = make_inputs(jp, sim, q_true, None, None, None, 0.5)
         assert lattice_evidence(inp_j.grey, (0, 0), inp_j.valid) > MIN_LATTICE_GAIN
-        found = engine._find_compression(inp_j, engine._coregister(inp_j))
+        found = find_compression(inp_j, coregister(inp_j))
         assert found is not None and abs(found.quality - quality) <= 10, (quality, found)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from geosim.diagnose.coregister import AffineEstimate
-from geosim.diagnose.engine import _field_sigma_px
 from geosim.diagnose.model import CompressionFit, ForwardModel, NoiseEstimate, Registration
 from geosim.diagnose.select import clearly_present, plausible
+from geosim.diagnose.stage_register import field_sigma_px
 
 
 def _reg() -> Registration:
@@ -52,9 +52,9 @@ def test_field_sigma_scales_with_scatter_and_blocks():
         return AffineEstimate((0.0, 0.0), np.zeros((2, 2)), (64.0, 64.0), 0.0, 1.0, resid, n,
                               local[:n])
 
-    s1 = _field_sigma_px(aff(0.5, len(local)), corners)
+    s1 = field_sigma_px(aff(0.5, len(local)), corners)
     # analytic: resid · r_max / sqrt(n/4 · mean|x − c|²)
     pos = local[:, :2] - 64.0
     want = 0.5 * np.hypot(64, 64) / np.sqrt(len(local) / 4 * np.mean(pos**2))
     assert np.isclose(s1, want)
-    assert np.isclose(_field_sigma_px(aff(1.0, len(local)), corners), 2 * s1)
+    assert np.isclose(field_sigma_px(aff(1.0, len(local)), corners), 2 * s1)

@@ -9,6 +9,7 @@ cross-validation and effect size), :mod:`~geosim.diagnose.noise` (white noise fl
 :mod:`~geosim.diagnose.model` (typed forward model and claims),
 :mod:`~geosim.diagnose.simulate` (the paper's model at any Q),
 :mod:`~geosim.diagnose.locate` (maps and regions), :mod:`~geosim.diagnose.engine`
-(the whole diagnosis on arrays, in stages), :mod:`~geosim.diagnose.report` and
+(the whole diagnosis on arrays; each stage in a ``stage_*`` module, see the code map in
+``docs/diagnosis.md``), :mod:`~geosim.diagnose.report` and
 :mod:`~geosim.diagnose.steps` (files).
 """

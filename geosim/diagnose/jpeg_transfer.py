@@ -14,7 +14,7 @@ with the blur found so far, matched to the scene's radiometry): its Welch transf
 H_J(f) = S_{J(m) m} / S_{m m} on the scene's blocks is the fraction of each frequency
 the JPEG passes *for content as blurred as the scene*. Simulations filtered by H_J
 stand in for "blur, then JPEG" in the transfer fit; the reference is updated as the
-blur is refined (:func:`geosim.diagnose.engine._joint_jpeg_blur`).
+blur is refined (:func:`geosim.diagnose.stage_jpeg_refit.joint_jpeg_blur`).
 
 **Noise dithers the quantisation.** Noise added before the JPEG moves coefficients that
 would be zeroed across their bin edges, so on average the JPEG of (model + noise) keeps

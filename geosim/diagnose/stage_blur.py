@@ -1,0 +1,147 @@
+"""Blur stage: the Q grid of exact simulations, screened Welch blocks and block
+cross-validation folds (:class:`SpectralSetup`), forward blur selection with room for Q
+(:func:`select_with_q_room`) and the exact window-aware family decisions
+(:func:`exact_anisotropic`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from geosim.diagnose.exact_family import EXACT_FAMILIES, exact_duel
+from geosim.diagnose.fit import SpectralData, build_spectral_data
+from geosim.diagnose.jpeg_transfer import JpegTransfer
+from geosim.diagnose.model import ForwardModel
+from geosim.diagnose.select import BlurSelection, select_blur
+from geosim.diagnose.spectra import block_origins, screen_blocks
+from geosim.diagnose.stage_inputs import Inputs, grey
+from geosim.errors import DiagnosisError
+
+__all__ = ["SpectralSetup", "spectral_setup", "select_with_q_room", "quadrant_folds",
+           "exact_anisotropic", "adopt", "ISOTROPIC", "MIN_BLOCKS", "Q_EXTEND", "Q_GRID_STEP",
+           "Q_MAX"]
+
+#: Welch blocks wanted for a stable transfer-function estimate
+MIN_BLOCKS = 16
+#: Q grid extension when the fitted Q is pinned at its upper end (factor, largest Q)
+Q_EXTEND = 1.5
+#: ratio of neighbouring Q values of the grid of exact simulations
+Q_GRID_STEP = 1.12
+Q_MAX = 6.0
+#: effects whose smooth isotropic roll-off the JPEG's high-frequency loss can imitate
+ISOTROPIC = ("detector_integration", "atmospheric_blur")
+
+
+@dataclass
+class SpectralSetup:
+    """Q grid of exact simulations, Welch blocks and the block cross-validation folds."""
+
+    q_grid: np.ndarray
+    sims_grey: list[np.ndarray]
+    origins: list[tuple[int, int]]
+    block_px: int
+    full: SpectralData
+    folds: list[tuple[SpectralData, SpectralData]]
+    n_screened: int
+
+
+def adopt(model: ForwardModel, sel: BlurSelection) -> ForwardModel:
+    """``model`` with the Q and blur effects of the selection's final fit."""
+    return model.without(q=sel.final.q, blur=dict(sel.final.effects))
+
+
+def quadrant_folds(origins: list[tuple[int, int]], block_px: int, shape: tuple[int, int]
+                   ) -> list[list[tuple[int, int]]]:
+    """Blocks grouped by quadrant of their centre (contiguous, so held-out blocks share
+    as few pixels as possible with the training blocks)."""
+    rows, cols = shape
+    groups: list[list[tuple[int, int]]] = [[], [], [], []]
+    for o in origins:
+        k = 2 * int(o[0] + block_px / 2 >= rows / 2) + int(o[1] + block_px / 2 >= cols / 2)
+        groups[k].append(o)
+    return [g for g in groups if len(g) >= 2]
+
+
+def select_with_q_room(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
+                       q_hi: float, candidates: tuple[str, ...], q_starts: tuple[float, float],
+                       jpeg: JpegTransfer | None = None) -> tuple[SpectralSetup, BlurSelection]:
+    """Q grid, Welch blocks and forward blur selection, with room for Q.
+
+    The Q grid ends at ``q_hi`` (from the LV baseline, which noise and JPEG pull far from
+    the true Q). When Q alone (the null model) or Q with the chosen blur is pinned at that
+    end, the scene is blurrier than the grid allows and an isotropic blur stands in for
+    the missing optics; the grid is then extended (× :data:`Q_EXTEND`, up to
+    :data:`Q_MAX`) and the selection redone. The grid is not widened otherwise: a wide
+    grid lets Q absorb real isotropic blurs (tried and reverted before).
+
+    ``jpeg``: under compression, the JPEG's transfer linearised around the blurred model
+    (the simulations are filtered by it instead of being JPEG'd sharp)."""
+    while True:
+        setup = spectral_setup(inp, model, fit_mask, q_lo, q_hi, jpeg)
+        sel = select_blur(setup.full, setup.folds, candidates=candidates, q_starts=q_starts)
+        top = setup.q_grid[-1] / 1.01
+        if q_hi >= Q_MAX or not (sel.null.q >= top or sel.final.q >= top):
+            return setup, sel
+        q_hi = min(Q_MAX, Q_EXTEND * q_hi)
+
+
+def spectral_setup(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
+                   q_hi: float, jpeg: JpegTransfer | None = None) -> SpectralSetup:
+    """Exact simulations on a Q grid, screened Welch blocks, CV folds (under JPEG, with
+    ``jpeg`` given: the uncompressed simulations filtered by its linearised transfer)."""
+    rows, cols = inp.valid.shape
+    n_q = int(np.ceil(np.log(q_hi / q_lo) / np.log(Q_GRID_STEP))) + 1
+    q_grid = np.exp(np.linspace(np.log(q_lo), np.log(q_hi), n_q))
+    if jpeg is not None and model.compression is not None:
+        sims_grey = [jpeg.apply(grey(model.sim_at(inp.simulate, q, compressed=False)))
+                     for q in q_grid]
+    else:
+        sims_grey = [grey(model.sim_at(inp.simulate, q)) for q in q_grid]
+    base_g = grey(model.sim_at(inp.simulate, inp.q_base))
+    block_px = inp.block_px
+    while True:  # smaller Welch blocks when changes leave too few whole blocks
+        origins = block_origins((rows, cols), block_px=block_px, valid=fit_mask)
+        origins, rho = screen_blocks(base_g, inp.grey, origins, block_px)
+        if len(origins) >= MIN_BLOCKS or block_px <= 16:
+            break
+        block_px //= 2
+    if len(origins) < 8:
+        # changed regions cover most of a small scene: use every valid block rather than
+        # none (the changes then lower the coherence, which the fit weights by)
+        block_px = inp.block_px
+        origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
+        rho = np.zeros(len(origins))
+    if len(origins) < 8:  # hard minimum
+        raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
+                             "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
+                             "larger common extent")
+    full = build_spectral_data(sims_grey, q_grid, inp.grey, origins=origins, block_px=block_px)
+    groups = quadrant_folds(origins, block_px, (rows, cols))
+    folds = []
+    if len(groups) >= 2:
+        for k, g in enumerate(groups):
+            train = [o for j, gg in enumerate(groups) if j != k for o in gg]
+            folds.append((build_spectral_data(sims_grey, q_grid, inp.grey, origins=train,
+                                              block_px=block_px),
+                          build_spectral_data(sims_grey, q_grid, inp.grey, origins=g,
+                                              block_px=block_px)))
+    return SpectralSetup(q_grid=q_grid, sims_grey=sims_grey, origins=origins, block_px=block_px,
+                         full=full, folds=folds, n_screened=len(rho) - len(origins))
+
+
+def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
+                      ) -> BlurSelection:
+    """Choose the anisotropic, then the isotropic blur by the exact (window-aware) model
+    and refit the chosen blurs with it (:mod:`geosim.diagnose.exact_family`).
+
+    The fast fit sees every blur through the Welch window's leakage, which smooths a sinc
+    towards a Gaussian (``motion_smear`` / ``off_nadir_anisotropy``) and the detector's
+    box towards the atmosphere's roll-off (``detector_integration`` /
+    ``atmospheric_blur``); within each family the exact model's held-out χ² decides. The
+    chosen effects, Q and gain are then the exact model's joint fit (on all blocks)."""
+    groups = quadrant_folds(setup.origins, setup.block_px, inp.valid.shape)
+    for family in EXACT_FAMILIES:
+        sel = exact_duel(inp.grey, setup.sims_grey, setup.q_grid, setup.full, setup.origins,
+                         groups, setup.block_px, sel, family, inp.q_base)
+    return sel

@@ -1,0 +1,83 @@
+"""The claimed effects in order, each with the fit after adding it (:func:`claim_effects`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from geosim.diagnose import locate
+from geosim.diagnose.model import Claim, ForwardModel
+from geosim.diagnose.select import BlurSelection
+from geosim.diagnose.stage_change import scene_change_claim
+from geosim.diagnose.stage_inputs import Inputs, grey, rmse
+from geosim.diagnose.stage_radiometry import affine_residual
+
+__all__ = ["claim_effects"]
+
+
+def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
+                  regions: list[locate.Region], labels: np.ndarray, inner: np.ndarray,
+                  eval_mask: np.ndarray, se_of: Callable[[np.ndarray], float], noise_seed: int
+                  ) -> list[Claim]:
+    """The claimed effects in order, each with the fit after adding it (cumulative)."""
+    sim = inp.simulate
+    reg = model.registration
+    empty = ForwardModel(q=inp.q_base, blur={}, registration=reg)
+    out: list[tuple[Claim, ForwardModel]] = []
+    if reg.applied:
+        m0 = empty
+        n_ind = max(eval_mask.sum() / 4.0, 3.0)  # residuals correlate over ≈ 4 px
+        rss0 = float(np.sum(affine_residual(grey(inp.base), inp.grey, eval_mask)[eval_mask]
+                            ** 2))
+        rss1 = float(np.sum(affine_residual(grey(m0.sim_at(sim)), inp.grey,
+                                            eval_mask)[eval_mask] ** 2))
+        k = 6 if reg.field_px is not None else 2
+        dbic = float(n_ind * np.log(max(rss0, 1e-12) / max(rss1, 1e-12)) - k * np.log(n_ind))
+        out.append((Claim("misregistration", reg.params(inp.gsd_m),
+                          {"shift_px": list(reg.estimate.sigma_px)}, dbic), m0))
+    cur = empty
+    if model.compression is not None:
+        c = model.compression
+        cur = cur.without(compression=c)
+        out.append((Claim("compression", {"quality": c.quality,
+                                          "block_offset_px": list(c.offset_px)},
+                          float(min(c.test["row_z"], c.test["col_z"]) ** 2), dict(c.test)), cur))
+    for st in sel.steps:
+        if st.name not in model.blur:
+            continue
+        cur = cur.without(q=st.fit.q, blur={n: p for n, p in st.fit.effects.items()
+                                            if n in model.blur})
+        unc = {**st.fit.sigmas.get(st.name, {}), "q": st.fit.q}  # type: ignore[dict-item]
+        alts = [{"name": a.name, "heldout_gain": a.cv_gain, "params": a.params}
+                for a in st.alternatives]
+        out.append((Claim(st.name, dict(st.fit.effects[st.name]), unc, st.delta_bic,
+                          st.heldout_gain, alts), cur))
+    cur = cur.without(q=model.q, blur=model.blur)
+    if model.seam is not None:
+        s = model.seam
+        cur = cur.without(seam=s)
+        out.append((Claim("exposure_seam", {
+            "factor": s.factor, "normal_deg": s.normal_deg, "offset_px": s.offset_px,
+            "fraction": s.fraction, "line_px": s.endpoints_px()}, {"explained": s.explained},
+            s.delta_bic), cur))
+    if model.radiometry is not None and model.radiometry.name:
+        r = model.radiometry
+        cur = cur.without(radiometry=r)
+        out.append((Claim(r.name, r.params, r.sigmas, r.delta_bic), cur))  # type: ignore[arg-type]
+    if model.noise is not None and model.noise.claimed:
+        n = model.noise
+        cur = cur.without(noise=n)
+        out.append((Claim("sensor_noise", {"gain_dn": n.gain_dn, "read_var_dn2": n.read_var_dn2},
+                          {"gain_dn": n.gain_sigma, "read_var_dn2": n.read_sigma},
+                          n.delta_bic), cur))
+    sc = [g for g in regions if g.kind == "scene_change"]
+    if sc:
+        out.append((scene_change_claim(inp, model, sc, regions, labels, inner), cur))
+    claims = []
+    for c, m in out:
+        c.rmse_after = rmse(m.deterministic(sim), inp.real, eval_mask)
+        c.spectral_error_after = se_of(m.delivered(sim, np.random.default_rng(noise_seed),
+                                                   quantized=inp.quantized))
+        claims.append(c)
+    return claims

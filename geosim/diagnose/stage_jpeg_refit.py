@@ -1,0 +1,178 @@
+"""JPEG quality and blur fitted together: the quality re-estimated on the blurred model
+to a fixed point (:func:`joint_jpeg_blur`), the check that an isotropic blur is not the
+quality's uncertainty (:func:`jpeg_robust_isotropic`), and the refit with the claimed
+noise dithering the quantisation (:func:`dithered_refit`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from geosim.diagnose.model import CompressionFit, ForwardModel
+from geosim.diagnose.noise import noise_dither
+from geosim.diagnose.select import BlurSelection
+from geosim.diagnose.spectra import spectral_error
+from geosim.diagnose.stage_blur import (
+    ISOTROPIC,
+    SpectralSetup,
+    adopt,
+    exact_anisotropic,
+    select_with_q_room,
+)
+from geosim.diagnose.stage_inputs import Inputs, greys
+from geosim.diagnose.stage_jpeg import (
+    MAX_CLAIMED_QUALITY,
+    jpeg_linearised,
+    jpeg_quality_for_scale,
+    jpeg_step_scale,
+    match_quality,
+)
+from geosim.diagnose.stage_noise import estimate_scene_noise, realisations
+from geosim.diagnose.stage_radiometry import band_affine, fit_scene_radiometry
+
+__all__ = ["joint_jpeg_blur", "reselect_at_quality", "robust_then_exact",
+           "jpeg_robust_isotropic", "dithered_refit", "JPEG_QUALITY_TOL", "JPEG_MAX_ROUNDS",
+           "JPEG_STEP_MARGIN", "DITHER_SEED"]
+
+#: joint JPEG quality and blur: stop when the quality re-estimated on the refined model
+#: moves by less than this; at most this many re-selections
+JPEG_QUALITY_TOL = 2
+JPEG_MAX_ROUNDS = 3
+#: an isotropic blur claimed under JPEG must still be chosen when the quantisation steps
+#: are this much coarser than estimated (the block-edge moment estimate of the quality
+#: scatters by up to ≈ 25 % in step size on the development half, and a too-fine JPEG
+#: leaves high frequencies that an isotropic blur then removes in its place)
+JPEG_STEP_MARGIN = 1.25
+#: seed of the noise realisations that compare the dithered refit with the first fit (the
+#: same realisations for both)
+DITHER_SEED = 12345
+
+
+def joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
+                    fit_mask: np.ndarray, q_lo: float, q_hi: float,
+                    candidates: tuple[str, ...], q_starts: tuple[float, float]
+                    ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """JPEG quality and blur, fitted to a common fixed point.
+
+    The quality is found by matching block-edge step energy, which depends on how sharp
+    the model is; the blur is found on the transfer against JPEG'd simulations, which
+    depends on the quality. A quality estimated on the too-sharp LV baseline comes out
+    too high (too little high-frequency loss in the JPEG'd simulations), and an isotropic
+    blur (``atmospheric_blur``) then stands in for the JPEG's loss. So: re-estimate the
+    quality on the refined (blurred) model, redo the blur selection with it, until the
+    quality moves by less than :data:`JPEG_QUALITY_TOL` (at most :data:`JPEG_MAX_ROUNDS`)."""
+    seen = {model.compression.quality} if model.compression is not None else set()
+    for k in range(JPEG_MAX_ROUNDS):
+        c = model.compression
+        if c is None:
+            break
+        ref = band_affine(model.without(compression=None, seam=None).blurred(inp.simulate),
+                          inp.real, inp.valid)
+        dither = noise_dither(model.noise)
+        if dither is not None:  # the scene's JPEG encoded a noisy product: so must the model's
+            ref = dither(ref, 0)
+        qual = match_quality(inp, ref, c.offset_px, fine_step=1)
+        if qual > MAX_CLAIMED_QUALITY:
+            break
+        # the first round always reselects: the JPEG's transfer is then linearised around
+        # the blurred model, not the sharp baseline (:mod:`geosim.diagnose.jpeg_transfer`)
+        if k > 0 and (abs(qual - c.quality) < JPEG_QUALITY_TOL or qual in seen):
+            break
+        seen.add(qual)
+        model, setup, sel = reselect_at_quality(inp, model, qual, fit_mask, q_lo, q_hi,
+                                                candidates, q_starts)
+    return model, setup, sel
+
+
+def reselect_at_quality(inp: Inputs, model: ForwardModel, quality: int, fit_mask: np.ndarray,
+                        q_lo: float, q_hi: float, candidates: tuple[str, ...],
+                        q_starts: tuple[float, float]
+                        ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """The blur selection redone from the baseline Q with the JPEG at ``quality`` (same
+    block offset and test), the JPEG's transfer linearised around ``model`` (its Q and
+    blur); the model adopts the new selection."""
+    c = model.compression
+    assert c is not None
+    comp = CompressionFit(quality, c.offset_px, c.test)
+    jpeg = jpeg_linearised(inp, model.without(compression=comp), fit_mask)
+    start = model.without(compression=comp, q=inp.q_base, blur={})
+    setup, sel = select_with_q_room(inp, start, fit_mask, q_lo, q_hi, candidates, q_starts, jpeg)
+    return adopt(start, sel), setup, sel
+
+
+def robust_then_exact(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
+                      sel: BlurSelection, fit_mask: np.ndarray, q_lo: float, q_hi: float,
+                      candidates: tuple[str, ...], q_starts: tuple[float, float]
+                      ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """The JPEG-robust isotropic check, then the exact window-aware family decisions; the
+    model adopts the exact decision's blur where it changed the fast fit's."""
+    model, setup, sel = jpeg_robust_isotropic(inp, model, setup, sel, fit_mask, q_lo, q_hi,
+                                              candidates, q_starts)
+    fast_final = sel.final
+    sel = exact_anisotropic(inp, setup, sel)
+    if sel.final is not fast_final:
+        model = adopt(model, sel)
+    return model, setup, sel
+
+
+def jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
+                          sel: BlurSelection, fit_mask: np.ndarray, q_lo: float, q_hi: float,
+                          candidates: tuple[str, ...], q_starts: tuple[float, float]
+                          ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """Under JPEG, an isotropic blur must not be explainable by the quality's uncertainty.
+
+    The blur selection is repeated with quantisation steps :data:`JPEG_STEP_MARGIN` times
+    coarser than estimated; if no isotropic blur is chosen there, the JPEG's own
+    high-frequency loss explains the roll-off and that selection is kept."""
+    c = model.compression
+    if c is None or not any(n in model.blur for n in ISOTROPIC):
+        return model, setup, sel
+    q_low = jpeg_quality_for_scale(JPEG_STEP_MARGIN * jpeg_step_scale(c.quality))
+    alt, alt_setup, alt_sel = reselect_at_quality(inp, model, q_low, fit_mask, q_lo, q_hi,
+                                                  candidates, q_starts)
+    if any(n in alt_sel.final.effects for n in ISOTROPIC):
+        return model, setup, sel
+    return alt, alt_setup, alt_sel
+
+
+def dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
+                   fit_mask: np.ndarray, q_lo: float, q_hi: float,
+                   candidates: tuple[str, ...], q_starts: tuple[float, float]
+                   ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+    """Under JPEG with noise claimed: quality and blur refitted with the noise in the model.
+
+    The scene's JPEG encoded a noisy product; noise dithers the quantisation, so the JPEG
+    keeps more of the high frequencies (and leaves more block-edge steps) than it does on
+    the noise-free model the first fit linearised it around. That fit therefore saw the
+    JPEG too lossy and its quality too coarse, and blurred too little. The quality, the
+    JPEG's linearised transfer, the blur, the radiometry and the noise are fitted again
+    with noise realisations of the estimate before the JPEG; the refit is kept only if the
+    noise is still claimed against it, else the noise is not claimed (development c17: a
+    Q misfit under JPEG read as 2.7 DN² of noise, 0.7 DN² against the refit), and only if
+    the delivered refit's expected power spectrum fits the scene no worse than the first
+    fit's (development extension: without this check a false `resampling` was claimed in
+    two JPEG + noise scenes)."""
+    if model.compression is None or model.noise is None or not model.noise.claimed:
+        return model, setup, sel
+    start = model.without(radiometry=None)
+    m2, setup2, sel2 = joint_jpeg_blur(inp, start, setup, sel, fit_mask, q_lo, q_hi,
+                                       candidates, q_starts)
+    if sel2 is sel:  # quality at the null end: nothing refitted
+        return model, setup, sel
+    m2, setup2, sel2 = robust_then_exact(inp, m2, setup2, sel2, fit_mask, q_lo, q_hi,
+                                         candidates, q_starts)
+    m2 = estimate_scene_noise(inp, fit_scene_radiometry(inp, m2.without(seam=None), fit_mask),
+                              setup2, fit_mask)
+    if m2.noise is None or not m2.noise.claimed:
+        # the noise does not survive a model that accounts for it (a misfit read as noise
+        # under the first quality and blur): not claimed, first fit kept
+        return model.without(noise=m2.noise), setup, sel
+
+    def expected_se(m: ForwardModel) -> float:
+        # the delivered simulation (JPEG last, on the noisy product): its expected spectrum
+        return spectral_error(greys(realisations(inp, m, DITHER_SEED)), inp.grey,
+                              block_px=setup.block_px, origins=setup.origins)
+
+    if expected_se(m2) > expected_se(model):
+        # the refit was made for the power the JPEG keeps under noise; it must show there
+        return model, setup, sel
+    return m2, setup2, sel2

@@ -1,0 +1,139 @@
+"""What the diagnosis reports besides the claims: the JSON-able summary
+(:func:`make_summary`), the mismatch maps (:func:`mismatch_maps`) and the plot data
+(:func:`plot_data`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from geosim.diagnose import locate
+from geosim.diagnose.fit import fit_transfer
+from geosim.diagnose.model import Claim, ForwardModel
+from geosim.diagnose.select import BlurSelection
+from geosim.diagnose.spectra import cross_spectrum, radial_profile
+from geosim.diagnose.stage_blur import SpectralSetup
+from geosim.diagnose.stage_inputs import Inputs, grey, rmse
+from geosim.diagnose.stage_jpeg import blockiness
+from geosim.diagnose.stage_radiometry import band_affine
+
+__all__ = ["make_summary", "mismatch_maps", "plot_data", "full_transfer", "PHYSICAL_Q"]
+
+PHYSICAL_Q = (0.5, 2.0)
+
+
+def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
+                 claims: list[Claim], eval_mask: np.ndarray, se_of: Callable[[np.ndarray], float],
+                 refined: np.ndarray, withdrawn: list[dict[str, str]]) -> dict[str, Any]:
+    """The JSON-able summary written to ``diagnosis.json`` (baseline, effects, refined
+    fit, ambiguities, withdrawals, candidates, co-registration, noise, settings)."""
+    base_rmse = rmse(inp.base, inp.real, eval_mask)
+    base_se = se_of(np.round(inp.base) if inp.quantized else inp.base)
+    ref_rmse = rmse(model.deterministic(inp.simulate), inp.real, eval_mask)
+    ref_se = se_of(refined)
+    ambiguities = [{"claimed": c.name, "alternatives": [a["name"] for a in c.alternatives],
+                    "note": (f"{c.name} and {', '.join(a['name'] for a in c.alternatives)} "
+                             "predict the held-out blocks about equally well (same family); "
+                             "the data cannot tell them apart")}
+                   for c in claims if c.alternatives]
+    reg, n = model.registration, model.noise
+    qs = sel.final.sigmas.get("q", float("nan"))
+    q_grid = setup.q_grid
+    return {
+        "baseline": {"q": inp.q_base, "lv_satellite": locate.laplacian_variance(inp.grey,
+                                                                                inp.valid),
+                     "lv_simulated": locate.laplacian_variance(grey(inp.base), inp.valid),
+                     "rmse": base_rmse, "spectral_error": base_se},
+        "effects": [c.to_json() for c in claims],
+        "refined": {"q": float(model.q), "q_sigma": float(qs),  # type: ignore[arg-type]
+                    "q_in_physical_range": bool(PHYSICAL_Q[0] <= model.q <= PHYSICAL_Q[1]),
+                    "q_at_fit_bound": bool(model.q <= q_grid[0] * 1.01
+                                           or model.q >= q_grid[-1] / 1.01),
+                    "physical_q_range": list(PHYSICAL_Q),
+                    "rmse": ref_rmse, "spectral_error": ref_se,
+                    "rmse_note": "rmse of the noise-free models; spectral_error of the "
+                                 "simulations as delivered (with the refined noise realisation, "
+                                 "rounded to whole DN when the real scene is)"},
+        "ambiguities": ambiguities,
+        "withdrawn": withdrawn,
+        "candidates_delta_bic": {k: float(v) for k, v in sel.tried.items()},
+        "candidates_heldout_gain": {k: float(v) for k, v in sel.cv_gain.items()},
+        "candidates_at_bound": sorted(sel.at_bound),
+        "candidates_too_small": sorted(sel.too_small),
+        "candidates_implausible": sorted(sel.implausible),
+        "coregistration": {"shift_px": list(reg.estimate.shift_px),
+                           "sigma_px": list(reg.estimate.sigma_px),
+                           "delta_bic": float(reg.estimate.delta_bic),
+                           "applied": bool(reg.applied)},
+        "noise": {"gain_dn": n.gain_dn if n else 0.0, "read_var_dn2": n.read_var_dn2 if n else 0.0,
+                  "white_variance_dn2": n.white_var_dn2 if n else 0.0,
+                  "whiteness": n.whiteness if n else float("nan"),
+                  "estimator": n.estimator if n else None,
+                  "claimed": bool(n is not None and n.claimed), "quantized": inp.quantized},
+        "compression_test": (model.compression.test if model.compression is not None
+                             else blockiness(grey(inp.real - band_affine(
+                                 reg.move(inp.base), inp.real, inp.valid)), inp.valid)),
+        "radiometry_bic": model.radiometry.bic if model.radiometry is not None else {},
+        "settings": {"block_px": setup.block_px, "q_grid": [float(q) for q in q_grid],
+                     "n_blocks": setup.full.n_blocks, "cv_folds": len(setup.folds),
+                     "held_out": bool(setup.folds), "blocks_screened_out": setup.n_screened},
+    }
+
+
+def mismatch_maps(inp: Inputs, model: ForwardModel, energy: np.ndarray) -> dict[str, np.ndarray]:
+    """Mismatch maps against the co-registered baseline (a global shift would otherwise
+    show up as local blur or loss of gain everywhere)."""
+    bg_al = grey(model.without(q=inp.q_base).sim_at(inp.simulate))
+    maps = {"residual_energy": np.where(inp.valid, energy, np.nan),
+            "blur_ratio": locate.local_blur_ratio(bg_al, inp.grey, valid=inp.valid)}
+    maps["gain"], maps["offset"] = locate.local_gain_offset(bg_al, inp.grey, valid=inp.valid)
+    return maps
+
+
+def plot_data(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
+              ev_origins: list[tuple[int, int]], refined: np.ndarray, summary: dict[str, Any]
+              ) -> dict[str, Any]:
+    """Plot data. Transfer functions on the fit's blocks, relative to the sharpest
+    simulation; the models *as fitted*, i.e. times the broadband gain g of the spectral
+    fit (g < 1 holds haze contrast loss and coherence loss from unshared content)."""
+    q_grid, bp, org = setup.q_grid, setup.block_px, setup.origins
+    g_base = fit_transfer(setup.full, [], fix_q=float(np.clip(inp.q_base, q_grid[0],
+                                                              q_grid[-1]))).gain
+    cs_real = cross_spectrum(setup.sims_grey[0], inp.grey, block_px=bp, origins=org)
+    t_real = np.abs(cs_real.transfer)
+    t_var = (1.0 - np.clip(cs_real.coherence, 1e-6, 1 - 1e-9)) / (
+        2.0 * cs_real.n_blocks * np.clip(cs_real.coherence, 1e-6, 1.0)) * t_real**2
+    bg_al = grey(model.without(q=inp.q_base).sim_at(inp.simulate))
+    g_base_t = g_base * np.abs(full_transfer(setup.sims_grey[0], bg_al, bp, org))
+    blur_only = grey(model.without(seam=None).blurred(inp.simulate))
+    g_ref_t = sel.final.gain * np.abs(full_transfer(setup.sims_grey[0], blur_only, bp, org))
+    delivered_base = np.round(inp.base) if inp.quantized else inp.base
+    p_real = cross_spectrum(inp.grey, inp.grey, block_px=bp, origins=ev_origins).s_ss
+    p_base = cross_spectrum(grey(delivered_base), inp.grey, block_px=bp,
+                            origins=ev_origins).s_ss
+    p_ref = cross_spectrum(grey(refined), inp.grey, block_px=bp, origins=ev_origins).s_ss
+    n = model.noise
+    plots = {"fy": cs_real.fy, "fx": cs_real.fx, "t_real": t_real, "t_real_var": t_var,
+             "t_base": g_base_t, "t_refined": g_ref_t, "gain_base": float(g_base),
+             "gain_refined": float(sel.final.gain), "coherence_base": cs_real.coherence,
+             "p_real": p_real, "p_base": p_base, "p_refined": p_ref,
+             "spectral_error": (summary["baseline"]["spectral_error"],
+                                summary["refined"]["spectral_error"]),
+             "noise_brightness": n.brightness_dn if n else np.zeros(0),
+             "noise_variance": n.variance_dn2 if n else np.zeros(0),
+             "noise_model": ((n.gain_dn, n.read_var_dn2 + n.quantization_dn2) if n
+                             else (0.0, 0.0)),
+             "noise_claimed": bool(n is not None and n.claimed), "quantized": inp.quantized,
+             "q_ref": float(q_grid[0]), "q_base": inp.q_base, "q_refined": float(model.q)}
+    f, prof = radial_profile(t_real, cs_real.fy, cs_real.fx)
+    plots["radial_f"] = f
+    plots["radial_real"] = prof
+    return plots
+
+
+def full_transfer(ref: np.ndarray, other: np.ndarray, block_px: int,
+                  origins: list[tuple[int, int]]) -> np.ndarray:
+    """Transfer function other / ref on the full block FFT grid."""
+    return cross_spectrum(ref, other, block_px=block_px, origins=origins).transfer
