@@ -251,8 +251,8 @@ def sample_site() -> dict | None:
         return None
     import tempfile
 
-    from geosim.diagnose.report import compare_with_truth, format_truth_comparison
     from geosim.diagnose.steps import diagnose_images
+    from geosim.diagnose.truth_compare import compare_with_truth, format_truth_comparison
 
     truth = json.loads((samples / "truth.json").read_text())
     with tempfile.TemporaryDirectory() as tmp:

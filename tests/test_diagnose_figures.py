@@ -15,12 +15,12 @@ from rasterio.crs import CRS  # noqa: E402
 from rasterio.transform import array_bounds  # noqa: E402
 
 from geosim.diagnose.engine import Diagnosis  # noqa: E402
-from geosim.diagnose.report import (  # noqa: E402
-    _save_png,
+from geosim.diagnose.report_figures import (  # noqa: E402
     draw_scale_bar,
     flights_figure,
     map_extent,
     mismatch_maps_figure,
+    save_png,
     scale_bar_length,
 )
 
@@ -97,7 +97,7 @@ def _per(q_base, q_ref):
 def test_combined_figure_says_all_flights(tmp_path):
     per = {"F1": _per(2.0, 1.5), "F2": _per(2.2, 1.6)}
     fig = flights_figure(per, {"refined": {"q": 1.55, "rmse": 3.0}})
-    name = _save_png(fig, tmp_path / "c.png", dpi=50)
+    name = save_png(fig, tmp_path / "c.png", dpi=50)
     title = Image.open(tmp_path / name).info["Title"]   # the PNG's own text chunk
     assert "All flights (combined)" in title and "F1" in title and "F2" in title
 
@@ -106,7 +106,7 @@ def test_dpi_scales_png_pixels_and_title_is_in_the_file(tmp_path):
     sizes = {}
     for dpi in (50, 100):
         fig = mismatch_maps_figure(_diag(), transform=TRANSFORM, crs=CRS_UTM, flight="F7")
-        _save_png(fig, tmp_path / f"m{dpi}.png", dpi=dpi, tight=False)
+        save_png(fig, tmp_path / f"m{dpi}.png", dpi=dpi, tight=False)
         with Image.open(tmp_path / f"m{dpi}.png") as im:
             sizes[dpi] = im.size
             assert "flight F7" in im.info["Title"]

@@ -173,7 +173,7 @@ def test_cli_standalone_and_errors(uav, tmp_path):
 
 
 def test_compare_with_truth_rows():
-    from geosim.diagnose.report import compare_with_truth, format_truth_comparison
+    from geosim.diagnose.truth_compare import compare_with_truth, format_truth_comparison
 
     doc = {"baseline": {"q": 4.3}, "refined": {"q": 1.6},
            "effects": [{"name": "off_nadir_anisotropy", "params": {"sigma_px": 0.3},

@@ -37,7 +37,8 @@ from rasterio.warp import transform_bounds
 
 from geosim.diagnose.engine import diagnose_arrays
 from geosim.diagnose.locate import laplacian_variance
-from geosim.diagnose.report import DEFAULT_DPI, write_diagnosis
+from geosim.diagnose.report import write_diagnosis
+from geosim.diagnose.report_figures import DEFAULT_DPI
 from geosim.diagnose.simulate import QSimulator
 from geosim.engine import parallel_map
 from geosim.errors import DiagnosisError, ExtentError
@@ -432,7 +433,7 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
     site_path = getattr(site, "path", None)
     truth_path = Path(site_path).parent / "truth.json" if site_path else None
     if truth_path is not None and truth_path.is_file():
-        from geosim.diagnose.report import compare_with_truth, format_truth_comparison
+        from geosim.diagnose.truth_compare import compare_with_truth, format_truth_comparison
         from geosim.io.atomic import write_text
 
         rows = compare_with_truth(doc, json.loads(truth_path.read_text()))
