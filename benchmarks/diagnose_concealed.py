@@ -30,9 +30,9 @@ sys.path.insert(0, str(ROOT))
 
 from geosim.diagnose.effects import get_effect as E  # noqa: E402
 from geosim.diagnose.engine import diagnose_arrays  # noqa: E402
+from geosim.diagnose.grids import calibrate_q_lv  # noqa: E402
 from geosim.diagnose.locate import laplacian_variance  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
-from geosim.diagnose.steps import calibrate_q_lv  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
 
 REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))

@@ -84,8 +84,8 @@ EXTENSION_SEED_OFFSET = {"noise": 0, "isoblur": 200}
 def diagnose_case(case: gen.Case) -> dict[str, Any]:
     """Run the diagnosis as a user would (LV baseline, then diagnose) and score it."""
     from geosim.diagnose.engine import diagnose_arrays
+    from geosim.diagnose.grids import calibrate_q_lv
     from geosim.diagnose.simulate import QSimulator
-    from geosim.diagnose.steps import calibrate_q_lv
     from geosim.physics.radiometry import luma
 
     t0 = time.time()

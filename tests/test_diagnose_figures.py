@@ -117,8 +117,8 @@ def test_dpi_scales_png_pixels_and_title_is_in_the_file(tmp_path):
 
 def test_diagnose_grids_figures_name_flight_and_follow_dpi(tmp_path):
     """Through the real writer: every PNG of a flight names it, at the dpi asked."""
+    from geosim.diagnose.grids import FlightPixels, diagnose_grids
     from geosim.diagnose.simulate import QSimulator
-    from geosim.diagnose.steps import FlightPixels, diagnose_grids
     from tests.test_diagnose_effects import textured_uav
 
     uav = textured_uav(192, seed=3)

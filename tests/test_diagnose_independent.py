@@ -21,8 +21,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import diagnose_generator as gen  # noqa: E402
 
 from geosim.diagnose.engine import diagnose_arrays  # noqa: E402
+from geosim.diagnose.grids import calibrate_q_lv  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
-from geosim.diagnose.steps import calibrate_q_lv  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
 
 

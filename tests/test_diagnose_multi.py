@@ -12,8 +12,9 @@ from rasterio.crs import CRS
 
 from geosim.diagnose.combine import combine_flights, combine_values
 from geosim.diagnose.effects import get_effect
+from geosim.diagnose.flights import diagnose_flights
+from geosim.diagnose.grids import FlightPixels
 from geosim.diagnose.simulate import QSimulator
-from geosim.diagnose.steps import FlightPixels, diagnose_flights
 from tests.test_diagnose_effects import textured_uav
 
 PHI = 2

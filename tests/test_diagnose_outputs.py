@@ -12,8 +12,8 @@ from affine import Affine
 from rasterio.crs import CRS
 
 from geosim.diagnose.engine import diagnose_arrays
+from geosim.diagnose.grids import FlightPixels, diagnose_grids
 from geosim.diagnose.simulate import QSimulator
-from geosim.diagnose.steps import FlightPixels, diagnose_grids
 from tests.test_diagnose_effects import textured_uav
 
 PHI = 2

@@ -12,7 +12,7 @@ import pytest
 import rasterio
 from rasterio.enums import ColorInterp
 
-from geosim.diagnose.steps import common_bands
+from geosim.diagnose.grids import common_bands
 from geosim.physics.radiometry import LUMA_WEIGHTS
 from tests.robust_helpers import copy_site, run_cli
 

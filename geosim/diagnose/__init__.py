@@ -10,6 +10,8 @@ cross-validation and effect size), :mod:`~geosim.diagnose.noise` (white noise fl
 :mod:`~geosim.diagnose.simulate` (the paper's model at any Q),
 :mod:`~geosim.diagnose.locate` (maps and regions), :mod:`~geosim.diagnose.engine`
 (the whole diagnosis on arrays; each stage in a ``stage_*`` module, see the code map in
-``docs/diagnosis.md``), :mod:`~geosim.diagnose.report` and
+``docs/diagnosis.md``), :mod:`~geosim.diagnose.report` (with ``report_figures``,
+``report_markdown``, ``truth_compare``), :mod:`~geosim.diagnose.grids`,
+:mod:`~geosim.diagnose.flights` and
 :mod:`~geosim.diagnose.steps` (files).
 """

@@ -16,6 +16,9 @@ maps and plots are written to ``diagnosis/`` itself.
 The diagnosis works on one window of at most ``max_sat_px`` × ``max_sat_px``
 satellite pixels at the centre of the common valid area (the UAV part of it is
 ``phi``² times larger and must fit in memory).
+
+One flight's pixels and their diagnosis: :mod:`~geosim.diagnose.grids`; several flights
+and the combined verdict: :mod:`~geosim.diagnose.flights`.
 """
 
 from __future__ import annotations
@@ -24,8 +27,6 @@ import dataclasses
 import functools
 import json
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,157 +36,18 @@ from affine import Affine
 from rasterio.crs import CRS
 from rasterio.warp import transform_bounds
 
-from geosim.diagnose.engine import diagnose_arrays
-from geosim.diagnose.locate import laplacian_variance
-from geosim.diagnose.report import write_diagnosis
+from geosim.diagnose.flights import diagnose_flights, recorded_files
+from geosim.diagnose.grids import MAX_SAT_PX, FlightPixels, central_window
 from geosim.diagnose.report_figures import DEFAULT_DPI
-from geosim.diagnose.simulate import QSimulator
-from geosim.engine import parallel_map
-from geosim.errors import DiagnosisError, ExtentError
-from geosim.io.atomic import to_jsonable
-from geosim.io.paths import safe_name, unique_name
+from geosim.errors import ExtentError
+from geosim.io.paths import unique_name
 from geosim.io.raster import RasterData, open_raster, read_valid_mask, read_window
-from geosim.physics.radiometry import luma
 from geosim.prepare.grid import sat_grid_offset
 from geosim.prepare.reproject import reproject_to_array
 from geosim.result import StepResult
 from geosim.rundir import RunDir, RunPath
 
-__all__ = ["run_diagnose", "run_diagnose_images", "diagnose_images", "calibrate_q_lv",
-           "diagnose_grids"]
-
-MAX_SAT_PX = 384
-
-
-def calibrate_q_lv(sim: QSimulator, real_grey: np.ndarray, valid: np.ndarray, *,
-                   q_min: float = 0.5, q_max: float = 8.0, quantized: bool = True) -> float:
-    """Q at which the paper model's Laplacian variance equals the real scene's.
-
-    The project's calibration (:func:`geosim.degrade.calibrate.calibrate_q`: a bracketed
-    root finder that also accounts for the LV that rounding to whole DN adds, and raises
-    :class:`~geosim.errors.CalibrationError` when the target is outside the bracket).
-    """
-    from geosim.degrade.calibrate import calibrate_q
-    from geosim.errors import CalibrationError
-
-    target = laplacian_variance(real_grey, valid)
-    lo = max(q_min, sim.q_min)
-    try:
-        return float(calibrate_q(sim.uav, sim.valid, target, phi=sim.phi, q_min=lo,
-                                 q_max=q_max, quantized=quantized, name="UAV image"))
-    except CalibrationError:
-        # noise (or compression) can make the scene look sharper than the sharpest
-        # simulation: that is a finding for the diagnosis, whose baseline is then the
-        # sharpest Q; anything else (flat scene, no overlap) is still an error
-        if np.isfinite(target) and target > laplacian_variance(luma(sim(lo)), valid):
-            import warnings
-
-            warnings.warn(f"the satellite scene looks sharper (LV {target:.4g}) than the "
-                          f"sharpest simulation (Q = {lo:g}); the diagnosis baseline is "
-                          f"Q = {lo:g} (noise or compression raise the LV)", stacklevel=2)
-            return float(lo)
-        raise
-
-
-def _central_window(valid: np.ndarray, max_px: int) -> tuple[slice, slice]:
-    rows = np.flatnonzero(valid.any(axis=1))
-    cols = np.flatnonzero(valid.any(axis=0))
-    if rows.size == 0:
-        raise ExtentError("satellite scene on the grid: no valid pixel in the common extent; "
-                          "check that UAV and satellite images overlap")
-    rc, cc = (rows[0] + rows[-1]) // 2, (cols[0] + cols[-1]) // 2
-    h = min(max_px, rows[-1] - rows[0] + 1)
-    w = min(max_px, cols[-1] - cols[0] + 1)
-    r0 = max(0, rc - h // 2)
-    c0 = max(0, cc - w // 2)
-    return slice(r0, r0 + h), slice(c0, c0 + w)
-
-
-@dataclass(frozen=True)
-class FlightPixels:
-    """What one flight's diagnosis reads: a satellite window and the UAV pixels under it.
-
-    Attributes
-    ----------
-    uav
-        The flight on the UAV grid nested in the satellite window (pixel size
-        ``sat.transform.a / phi``, same origin).
-    sat
-        The satellite scene's window (its ``transform`` and ``crs`` place every output).
-    q_base
-        Calibrated Q to start from (None: calibrate here by Laplacian variance).
-    sources
-        Input files, recorded in the provenance tags.
-    """
-
-    uav: RasterData
-    sat: RasterData
-    q_base: float | None = None
-    sources: tuple[str, ...] = ()
-
-    @classmethod
-    def of_arrays(cls, uav: np.ndarray, sat: np.ndarray, *, sat_transform: Affine, crs: CRS,
-                  phi: int, uav_valid: np.ndarray | None = None,
-                  sat_valid: np.ndarray | None = None, q_base: float | None = None
-                  ) -> FlightPixels:
-        """From in-memory ``(bands, rows, cols)`` arrays: the UAV grid is the satellite
-        window's grid refined ``phi`` times (same origin); masks default to all valid."""
-        def data(a: np.ndarray, valid: np.ndarray | None, t: Affine) -> RasterData:
-            v = np.ones(a.shape[-2:], bool) if valid is None else np.asarray(valid, bool)
-            return RasterData(array=a, valid=v, transform=t, crs=crs,
-                              band_names=(None,) * a.shape[0])
-
-        return cls(uav=data(uav, uav_valid, sat_transform * Affine.scale(1.0 / phi)),
-                   sat=data(sat, sat_valid, sat_transform), q_base=q_base)
-
-
-def diagnose_grids(pixels: FlightPixels, out_dir: Path, *, phi: int, seed: int = 0,
-                   q_min: float = 0.5, q_max: float = 8.0, extra: dict[str, Any] | None = None,
-                   dpi: int = DEFAULT_DPI) -> dict[str, Any]:
-    """Diagnose one flight's co-gridded pixels (UAV at sat/phi, satellite at the sat grid)
-    and write diagnosis.json, GeoTIFFs and figures (at ``dpi``) into ``out_dir``."""
-    sat_transform, crs = pixels.sat.transform, pixels.sat.crs
-    uav, sat = common_bands(pixels.uav.array, pixels.sat.array)
-    sim = QSimulator(uav.astype(np.float32), phi=phi, valid=pixels.uav.valid, q_min=0.6)
-    s0 = sim(2.0)
-    valid = pixels.sat.valid & sim_valid(pixels.uav.valid, phi, s0.shape[-2:])
-    q_base = pixels.q_base
-    if q_base is None:
-        q_base = calibrate_q_lv(sim, luma(sat), valid, q_min=q_min, q_max=q_max)
-    diag = diagnose_arrays(sat, sim, q_base=q_base, rng=np.random.default_rng(seed),
-                           valid=valid, gsd_m=abs(sat_transform.a), q_lo=0.7)
-    return write_diagnosis(diag, out_dir, transform=sat_transform, crs=crs,
-                           sources=list(pixels.sources), extra=extra, dpi=dpi)
-
-
-def common_bands(uav: np.ndarray, sat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The two images with the same bands: both as they are, or both grey (luma).
-
-    A grey (1-band) flight or satellite scene says nothing about colour, so when one
-    image is grey and the other RGB the RGB one is compared by its luma (BT.601).
-
-    Parameters
-    ----------
-    uav, sat
-        (bands, rows, cols) arrays, DN; 1 or >= 3 bands each.
-    """
-    nu, ns = uav.shape[0], sat.shape[0]
-    if nu == ns:
-        return uav, sat
-    if 1 not in (nu, ns):
-        raise DiagnosisError(f"UAV imagery has {nu} band(s) and the satellite scene {ns}; "
-                             "give both the same bands (RGB) or one of them grey")
-    if nu > 1:
-        uav = luma(uav)[np.newaxis].astype(uav.dtype, copy=False)
-    if ns > 1:
-        sat = luma(sat)[np.newaxis].astype(np.float32, copy=False)
-    return uav, sat
-
-
-def sim_valid(uav_valid: np.ndarray, phi: int, shape: tuple[int, int]) -> np.ndarray:
-    r, c = shape
-    v = uav_valid[: r * phi, : c * phi].reshape(r, phi, c, phi)
-    return v.all(axis=(1, 3))
+__all__ = ["run_diagnose", "run_diagnose_images", "diagnose_images"]
 
 
 def _summary(doc: dict[str, Any], out: Path) -> dict[str, Any]:
@@ -213,144 +75,6 @@ def _summary(doc: dict[str, Any], out: Path) -> dict[str, Any]:
         if doc.get("flights_skipped"):
             out_d["flights_skipped"] = doc["flights_skipped"]
     return out_d
-
-
-def _flight_dir(flight: str, taken: set[str]) -> str:
-    """A folder name for a flight id (safe characters only, unique)."""
-    name = unique_name(safe_name(flight, default="flight"), taken | {"diagnosis"})
-    taken.add(name)
-    return name
-
-
-@dataclass(frozen=True)
-class DiagnoseFlightTask:
-    """One flight to diagnose: ``load()`` reads its :class:`FlightPixels` (picklable)."""
-
-    flight: str
-    load: Callable[[], FlightPixels]
-    out_dir: Path
-    phi: int
-    seed: int
-    q_min: float
-    q_max: float
-    dpi: int = DEFAULT_DPI
-    #: Resumable when set: (run folder, the files ``load`` reads) — a rerun with the same
-    #: inputs and parameters reuses the flight's diagnosis instead of making it again.
-    resume: tuple[Path, tuple[Path, ...]] | None = None
-
-
-def _diagnose_one(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
-    try:
-        doc = diagnose_grids(task.load(), task.out_dir, phi=task.phi, seed=task.seed,
-                             q_min=task.q_min, q_max=task.q_max,
-                             extra={"flight": task.flight}, dpi=task.dpi)
-    except (DiagnosisError, ExtentError) as exc:
-        return None, str(exc)
-    # through JSON (NaN kept), so that a fresh and a reused diagnosis are the same values
-    return to_jsonable(doc), None
-
-
-def diagnose_flight_task(task: DiagnoseFlightTask) -> tuple[dict[str, Any] | None, str | None]:
-    """Diagnose one flight into ``task.out_dir``: (diagnosis.json dict, None), or
-    (None, why) when it cannot be diagnosed (too little overlap, no usable data).
-
-    With ``task.resume`` the flight's diagnosis is skipped when its manifest entry is
-    current (same input files, parameters and output files); the dict then comes from
-    the entry (``"skipped": true`` is not added: callers count skips with
-    :func:`diagnosis_was_current`).
-    """
-    if task.resume is None:
-        return _diagnose_one(task)
-    from geosim import manifest
-
-    run_dir, inputs = task.resume
-    key = f"diagnosis/{task.out_dir.name}/flight"
-    params = {"step": "diagnose", "flight": task.flight, "phi": task.phi, "seed": task.seed,
-              "q_min": task.q_min, "q_max": task.q_max, "dpi": task.dpi,
-              "dir": task.out_dir.name, "max_sat_px": MAX_SAT_PX}
-    recorded = _recorded_files(run_dir, key)
-    entry = manifest.cached(run_dir, key, inputs, params, outputs=recorded)
-    if entry is not None and recorded and isinstance(entry.get("result"), dict):
-        return entry["result"], _CURRENT
-    doc, why = _diagnose_one(task)
-    if doc is not None:
-        outputs = sorted(p for p in task.out_dir.rglob("*") if p.is_file())
-        manifest.record(run_dir, key, inputs, params, outputs=outputs, result=doc)
-    return doc, why
-
-
-#: ``why`` of a diagnosis reused from the manifest (the dict is returned with it).
-_CURRENT = "already current"
-
-
-def diagnosis_was_current(result: tuple[dict[str, Any] | None, str | None]) -> bool:
-    """Whether :func:`diagnose_flight_task` reused a current diagnosis."""
-    return result[0] is not None and result[1] == _CURRENT
-
-
-def _recorded_files(run_dir: Path, key: str) -> list[Path]:
-    """The output files a manifest entry lists (to check they are still those files)."""
-    from geosim import manifest
-
-    try:
-        entry = json.loads((Path(run_dir) / manifest.MANIFEST_DIR / f"{key}.json").read_text())
-        return [Path(run_dir) / rel for rel in entry["outputs"]]
-    except (OSError, ValueError, KeyError, TypeError):
-        return []
-
-
-def diagnose_flights(loaders: list[tuple[str, Callable[[], FlightPixels]]], out_dir: Path, *,
-                     reference: str | None, phi: int, seed: int = 0, q_min: float = 0.5,
-                     q_max: float = 8.0, dpi: int = DEFAULT_DPI,
-                     resume: dict[str, tuple[Path, tuple[Path, ...]]] | None = None,
-                     counts: dict[str, int] | None = None) -> dict[str, Any]:
-    """Diagnose several flights one at a time and write the combined verdict.
-
-    Parameters
-    ----------
-    loaders
-        (flight id, load) pairs in site order; ``load()`` returns the flight's
-        :class:`FlightPixels`, or raises :class:`~geosim.errors.DiagnosisError` /
-        ``ExtentError`` when the flight cannot be diagnosed (it is then skipped, with the
-        reason in ``flights_skipped``).
-    reference
-        The flight whose GeoTIFFs, maps and plots are copied to the top level (default,
-        or when it was skipped: the first diagnosed flight).
-    resume
-        Per flight, (run folder, the files its ``load`` reads): its diagnosis is reused
-        when current (:func:`diagnose_flight_task`).
-    counts
-        Filled with ``skipped_current``: flights whose diagnosis was reused.
-
-    Returns
-    -------
-    dict
-        The combined diagnosis.json dict.
-    """
-    from geosim.diagnose.report import write_combined
-
-    per: dict[str, dict[str, Any]] = {}
-    dirs: dict[str, str] = {}
-    skipped: dict[str, str] = {}
-    taken: set[str] = set()
-    tasks = [DiagnoseFlightTask(fid, load, out_dir / _flight_dir(fid, taken), phi=phi,
-                                seed=seed + 1000 * i, q_min=q_min, q_max=q_max, dpi=dpi,
-                                resume=(resume or {}).get(fid))
-             for i, (fid, load) in enumerate(loaders)]
-    results = parallel_map(diagnose_flight_task, tasks, desc="diagnose flights")
-    if counts is not None:
-        counts["skipped_current"] = sum(map(diagnosis_was_current, results))
-    for task, (doc, why) in zip(tasks, results, strict=True):
-        if doc is None:
-            skipped[task.flight] = why or ""
-        else:
-            per[task.flight], dirs[task.flight] = doc, task.out_dir.name
-    if not per:
-        raise DiagnosisError(f"{out_dir}: no flight could be diagnosed against the satellite "
-                             "scene (" + "; ".join(f"{k}: {v}" for k, v in skipped.items())
-                             + "); give flights that overlap the satellite scene")
-    ref = reference if reference in per else next(iter(per))
-    return write_combined(per, out_dir, reference=ref, dirs=dirs, skipped=skipped, dpi=dpi)
 
 
 def _read_q_base(path: Path, flight: str) -> float | None:
@@ -385,7 +109,7 @@ def _read_flight(run: RunDir, sat_path: Path, aligned: Any, phi: int) -> FlightP
                               "pixels; the diagnosis needs a common extent")
         inner = rasterio.windows.Window(c0, r0, c1 - c0, r1 - r0)
         svalid = read_valid_mask(ds, inner)
-        rs, cs = _central_window(svalid, MAX_SAT_PX)
+        rs, cs = central_window(svalid, MAX_SAT_PX)
         win = rasterio.windows.Window(c0 + cs.start, r0 + rs.start, cs.stop - cs.start,
                                       rs.stop - rs.start)
         sat = read_window(ds, win, max_bands=3, out_dtype=np.float64, path=sat_path)
@@ -450,7 +174,7 @@ def run_diagnose(site: Any, out: RunPath, *, dpi: int = DEFAULT_DPI) -> StepResu
     # the diagnosis writes many files (some through matplotlib): record those written now
     # ... and those of the flights whose diagnosis was reused (still the recorded files)
     reused = {p for d in (doc.get("flights") or {}).values() if isinstance(d, dict)
-              for p in _recorded_files(run.root, f"diagnosis/{d.get('dir')}/flight")}
+              for p in recorded_files(run.root, f"diagnosis/{d.get('dir')}/flight")}
     outputs = [run.rel(p) for p in sorted(run.diagnosis_dir.rglob("*"))
                if p.is_file() and (p.stat().st_mtime >= started - 1.0 or p in reused)]
     summary["skipped_current"] = n_skipped
