@@ -37,7 +37,8 @@ Per-worker rate of the whole command (issue 13's target, >= 0.5 pairs/s per work
 <= 2 CPU s per output pair, with the default deflate output): ``--end-to-end``, whose
 ``cpu_pairs_per_second`` per code is that rate; run it with ``OMP_NUM_THREADS=1
 OPENCV_FOR_THREADS_NUM=1 GDAL_NUM_THREADS=1`` as a Dask worker runs (OpenCV is set to one
-thread while timed either way).
+thread while timed either way, and ``GEOSIM_THREADS=1`` is set for the command, whose
+in-process engine would otherwise give its tasks every core).
 """
 
 from __future__ import annotations
@@ -165,13 +166,20 @@ def end_to_end_one_thread(size: int, n: int, first_seed: int = 0,
     """The whole command (``run_augment``, GeoTIFF in/out) with whatever geosim is importable.
 
     One pair, ``n`` outputs, seed ``first_seed``, after an untimed one-output warm-up in
-    the same process (a worker's steady state); OpenCV at one thread as on a worker;
+    the same process (a worker's steady state); one thread for OpenCV, GDAL and FFTs as on
+    a worker (``GEOSIM_THREADS=1`` while timed: the in-process engine would give the task
+    every core);
     ``compress``: the GeoTIFF compression (``None``: the code's default, for revisions
     without the option).
     """
     a, b = _pair(size)
     before = cv2.getNumThreads()
     cv2.setNumThreads(1)
+    # run_augment runs its tasks in-process with every core for OpenCV, GDAL and FFTs
+    # (geosim.engine.in_process_threads) unless GEOSIM_THREADS says otherwise; a Dask
+    # worker runs them with one: time what a worker does
+    threads_env = os.environ.get("GEOSIM_THREADS")
+    os.environ["GEOSIM_THREADS"] = "1"
     try:
         # warm-up (untimed): one output of another seed, so that the timed run sees the
         # process as a worker does after its first pair (imports, GDAL, the heap)
@@ -180,6 +188,10 @@ def end_to_end_one_thread(size: int, n: int, first_seed: int = 0,
         r = _end_to_end(size, n, a, b, seed=first_seed + 1, compress=compress)
     finally:
         cv2.setNumThreads(before)
+        if threads_env is None:
+            del os.environ["GEOSIM_THREADS"]
+        else:
+            os.environ["GEOSIM_THREADS"] = threads_env
     return {**r, "cpu_pairs_per_second": round(1 / r["cpu_seconds_per_pair"], 3),
             "load_average": round(load, 2)}
 
@@ -503,7 +515,7 @@ def _main_end_to_end(args: argparse.Namespace) -> None:
                       "load_average_at_end": [round(x, 2) for x in os.getloadavg()],
                       "thread_env": {k: os.environ.get(k) for k in (
                           "OMP_NUM_THREADS", "OPENCV_FOR_THREADS_NUM", "GDAL_NUM_THREADS")},
-                      "opencv_threads_while_timed": 1}
+                      "opencv_threads_while_timed": 1, "geosim_threads_while_timed": 1}
     # issue 13: >= 0.5 pairs/s per single-threaded worker, i.e. <= 2 CPU s per output pair
     res["target_cpu_seconds_per_pair"] = 2.0
     out_path.parent.mkdir(parents=True, exist_ok=True)
