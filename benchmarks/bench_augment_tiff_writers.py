@@ -6,7 +6,7 @@ with the same tags, in the same process, alternating:
 
 - ``direct``: :func:`geosim.augment.tiff_writer.write_plain_tiff` (256 px tiles,
   predictor 2, ISA-L deflate level 1, GDAL's internal 1-bit mask IFD);
-- ``tifffile``: :class:`tifffile.TiffWriter` with imagecodecs (512 px tiles, predictor 2,
+- ``tifffile_512``: :class:`tifffile.TiffWriter` with imagecodecs (512 px tiles, predictor 2,
   deflate level 1, the ``GDAL_METADATA`` tag, the mask as a second page with
   ``NewSubfileType = MASK``, ``Photometric = MASK``, 1 bit, deflated: GDAL's internal mask);
 - ``tifffile_256``: the same with 256 px tiles;
@@ -16,7 +16,8 @@ with the same tags, in the same process, alternating:
   (``imagecodecs.zlibng_encode``).
 
 CPU seconds per image (one thread), file size, and whether GDAL (rasterio) reads back the
-same pixels, the same per-dataset mask and the same tags from each file. Results to
+same pixels, the same per-dataset mask and the same tags from each file (tifffile always adds
+resolution tags, which GDAL reports as metadata: ``tags_equal_direct`` is False). Results to
 ``benchmarks/results/bench_augment_tiff_writers.json``.
 
 Usage: ``python benchmarks/bench_augment_tiff_writers.py [--reps 5]``; needs ``tifffile`` and
