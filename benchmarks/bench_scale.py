@@ -39,6 +39,13 @@ Usage::
 worker without Dask: the baseline of pure multi-process scaling (``1`` uses every core for
 FFTs, OpenCV and GDAL, so it is partly parallel already).
 
+Before the steps (unless ``--no-ceiling``), ``machine_ceiling.py`` measures what this
+machine gives two single-threaded processes over one on plain reference workloads
+(compute-bound in cache, a 5000² bicubic warpAffine, 2048² FFT filtering, a memory
+stream; ≈ 40 s): the results record it with ``lscpu`` under ``machine_ceiling``, and each
+step's speed-up is printed next to the ceiling of the workload it is shaped like
+(``speedup_vs_ceiling``).
+
 Writes benchmarks/results/bench_scale.json (or --out) and prints a markdown table.
 """
 
@@ -438,9 +445,17 @@ def _same_outputs(a: Path, b: Path) -> bool:
 
 def run(size: int, tile_px: int, workers: list[str], keep: bool,
         site_cache: Path | None = None, gdalwarp: bool = True,
-        steps: tuple[str, ...] = STEPS) -> dict:
+        steps: tuple[str, ...] = STEPS, ceiling_s: float | None = 2.5) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="geosim-scale-"))
     try:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import machine_ceiling
+
+        ceiling = None
+        if ceiling_s:
+            ceiling = machine_ceiling.probe(seconds=ceiling_s)
+            print("machine ceiling (2 processes ÷ 1):\n" + machine_ceiling.describe(ceiling),
+                  flush=True)
         t0 = time.perf_counter()
         site_file, imagery, reused = make_site(tmp / "site", size, tile_px, site_cache)
         make_s = time.perf_counter() - t0
@@ -462,6 +477,10 @@ def run(size: int, tile_px: int, workers: list[str], keep: bool,
                 if len(workers) > 1 and n_tiles else None)
         doc = summarise(rows, gw, size, tile_px, n_tiles, imagery, make_s, workers, same)
         doc["site_reused_from_cache"] = reused
+        doc["machine"]["lscpu"] = machine_ceiling.lscpu()
+        if ceiling is not None:
+            doc["machine_ceiling"] = ceiling
+            doc["speedup_vs_ceiling"] = against_ceiling(doc, ceiling)
     finally:
         if keep:
             print(f"kept {tmp}")
@@ -526,6 +545,25 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
     return doc
 
 
+def against_ceiling(doc: dict, ceiling: dict) -> dict:
+    """Each step's speed-up beside the machine's ceiling for the workload it is shaped
+    like (``machine_ceiling.STEP_SHAPE``): the wall-time ceiling measured in this run and
+    the one two whole cores would give (work per CPU second, 2 at once ÷ alone, × 2)."""
+    out = {}
+    for name, key in (("speedup", "speedup"), ("speedup_vs_one_thread", "speedup_vs_one_thread")):
+        for step, x in (doc.get(key) or {}).items():
+            shape = ceiling["step_shape"].get(step)
+            if shape not in ceiling["ceilings"]:
+                continue
+            rec = out.setdefault(step, {"shape": shape,
+                                        "ceiling": ceiling["ceilings"][shape],
+                                        "ceiling_two_cores":
+                                            ceiling["ceilings_two_cores"][shape]})
+            rec[name] = x
+            rec[f"{name}_of_ceiling"] = round(x / ceiling["ceilings"][shape], 3)
+    return out
+
+
 def markdown(doc: dict) -> str:
     lines = [f"{doc['flights']} flights of {doc['flight_px']}² px ({doc['imagery']}), tiles of "
              f"{doc['tile_px']} px, {doc['machine']['cpus']} CPUs", "",
@@ -553,6 +591,14 @@ def markdown(doc: dict) -> str:
                         + ", ".join(f"{k} {v}×" for k, v in doc["speedup_vs_one_thread"].items()))
                      + f"; tiles and degraded tiles identical: "
                      f"{doc['outputs_identical_across_workers']}.")
+    if doc.get("speedup_vs_ceiling"):
+        lines.append("Against the machine's ceiling (2 processes ÷ 1 on a plain workload of "
+                     "the step's shape, measured in this run): "
+                     + ", ".join(f"{s} {r['speedup']}× of a machine ceiling {r['ceiling']}× "
+                                 f"({r['shape']}; {r['ceiling_two_cores']}× with two whole "
+                                 "cores)"
+                                 for s, r in doc["speedup_vs_ceiling"].items() if "speedup" in r)
+                     + ".")
     if "seconds" in gw and doc.get("prepare_vs_gdalwarp"):
         lines.append(f"gdalwarp, the same reprojection of the same flights (all CPUs): "
                      f"{gw['seconds']} s ({3 * doc['flight_px'] ** 2 / 1e6 / gw['seconds']:.2f}"
@@ -586,6 +632,10 @@ def main() -> None:
     ap.add_argument("--steps", default=",".join(STEPS),
                     help="steps to run, in pipeline order, comma-separated (default: all; "
                          "a step needs the ones before it, e.g. grid,footprints,align)")
+    ap.add_argument("--no-ceiling", action="store_true",
+                    help="skip the machine-ceiling probe (≈ 40 s before the steps)")
+    ap.add_argument("--ceiling-seconds", type=float, default=2.5,
+                    help="wall seconds per phase of the ceiling probe (default 2.5)")
     ap.add_argument("--child")
     ap.add_argument("--site")
     ap.add_argument("--run")
@@ -600,7 +650,7 @@ def main() -> None:
     if not set(steps) <= set(STEPS):
         ap.error(f"--steps: choose among {', '.join(STEPS)}")
     doc = run(args.size, args.tile_px, workers, args.keep, args.site_cache,
-              not args.no_gdalwarp, steps)
+              not args.no_gdalwarp, steps, None if args.no_ceiling else args.ceiling_seconds)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(markdown(doc))
