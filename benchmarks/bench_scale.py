@@ -557,6 +557,7 @@ def against_ceiling(doc: dict, ceiling: dict) -> dict:
                 continue
             rec = out.setdefault(step, {"shape": shape,
                                         "ceiling": ceiling["ceilings"][shape],
+                                        "ceiling_quiet": ceiling["quiet"][shape],
                                         "ceiling_two_cores":
                                             ceiling["ceilings_two_cores"][shape]})
             rec[name] = x
@@ -595,8 +596,9 @@ def markdown(doc: dict) -> str:
         lines.append("Against the machine's ceiling (2 processes ÷ 1 on a plain workload of "
                      "the step's shape, measured in this run): "
                      + ", ".join(f"{s} {r['speedup']}× of a machine ceiling {r['ceiling']}× "
-                                 f"({r['shape']}; {r['ceiling_two_cores']}× with two whole "
-                                 "cores)"
+                                 f"({r['shape']}"
+                                 f"{'' if r['ceiling_quiet'] else ', NOT quiet'}; "
+                                 f"{r['ceiling_two_cores']}× with two whole cores)"
                                  for s, r in doc["speedup_vs_ceiling"].items() if "speedup" in r)
                      + ".")
     if "seconds" in gw and doc.get("prepare_vs_gdalwarp"):
