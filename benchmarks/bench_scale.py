@@ -548,7 +548,7 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
 def against_ceiling(doc: dict, ceiling: dict) -> dict:
     """Each step's speed-up beside the machine's ceiling for the workload it is shaped
     like (``machine_ceiling.STEP_SHAPE``): the wall-time ceiling measured in this run and
-    the one two whole cores would give (work per CPU second, 2 at once ÷ alone, × 2)."""
+    the two estimates of what two whole cores give (``machine_ceiling``'s docstring)."""
     out = {}
     for name, key in (("speedup", "speedup"), ("speedup_vs_one_thread", "speedup_vs_one_thread")):
         for step, x in (doc.get(key) or {}).items():
@@ -558,6 +558,7 @@ def against_ceiling(doc: dict, ceiling: dict) -> dict:
             rec = out.setdefault(step, {"shape": shape,
                                         "ceiling": ceiling["ceilings"][shape],
                                         "ceiling_quiet": ceiling["quiet"][shape],
+                                        "ceiling_corun": ceiling["ceilings_corun"][shape],
                                         "ceiling_two_cores":
                                             ceiling["ceilings_two_cores"][shape]})
             rec[name] = x
@@ -598,7 +599,8 @@ def markdown(doc: dict) -> str:
                      + ", ".join(f"{s} {r['speedup']}× of a machine ceiling {r['ceiling']}× "
                                  f"({r['shape']}"
                                  f"{'' if r['ceiling_quiet'] else ', NOT quiet'}; "
-                                 f"{r['ceiling_two_cores']}× with two whole cores)"
+                                 f"{r['ceiling_two_cores']}× per CPU second, "
+                                 f"{r['ceiling_corun'] or '–'}× from the co-run repetitions)"
                                  for s, r in doc["speedup_vs_ceiling"].items() if "speedup" in r)
                      + ".")
     if "seconds" in gw and doc.get("prepare_vs_gdalwarp"):

@@ -50,6 +50,9 @@ def test_probe_fields_sane(doc):
         assert 0 < w["ceiling_two_cores"] == pytest.approx(2 * w["cpu_efficiency"], abs=2e-3)
         assert 0 < doc["cores_used"][name]["pair"] <= os.cpu_count() + 0.2
         assert isinstance(w["quiet"], bool)
+        assert w["corun_reps"] >= 0 and "spans" not in w["pair"]
+        assert w["corun_ceiling"] is None or 0 < w["corun_ceiling"] < 3
+        assert doc["ceilings_corun"][name] == w["corun_ceiling"]
 
 
 def test_children_single_threaded():
@@ -88,3 +91,38 @@ def test_bench_scale_puts_steps_beside_their_ceiling(doc):
     assert got["align"]["speedup_of_ceiling"] == pytest.approx(1.5 / warp, rel=2e-3)
     assert got["align"]["speedup_vs_one_thread"] == 1.8
     assert got["degrade"]["shape"] == "fft" and got["degrade"]["ceiling"] == fft
+    assert got["align"]["ceiling_corun"] == doc["ceilings_corun"]["warp"]
+
+
+def test_corun_reps_only_when_both_ran_on_their_cores():
+    """A repetition counts as run two at once only when it ran on its core all along and
+    the other process's repetitions over the same interval did too (synthetic spans)."""
+    full = lambda a, b: (a, b, b - a)  # noqa: E731 - CPU = wall: on a core all along
+    half = lambda a, b: (a, b, (b - a) / 2)  # noqa: E731 - descheduled half the time
+    ph = machine_ceiling.Phase(
+        processes=2, reps=[3, 3], seconds=[3.0, 3.0], cpu_s=[2.5, 2.5], load_1min=[0, 0],
+        steal_fraction=None,
+        spans=[[full(0, 1), full(1, 2), half(2, 3)],
+               [full(0.0, 1.5), half(1.5, 2.5), full(2.5, 3.5)]])
+    # process 0: rep 0-1 inside other's full 0-1.5: yes; 1-2 overlaps other's half: no;
+    # 2-3 is not full itself: no. Process 1: 0-1.5 inside full 0-1 + 1-2: yes; 2.5-3.5
+    # ends after the other's last repetition: no.
+    assert sorted(ph.corun_reps()) == [1.0, 1.5]
+    assert [s[:2] for s in ph.full_reps(1)] == [(0.0, 1.5), (2.5, 3.5)]
+
+
+def test_corun_ceiling_from_medians():
+    """2 × median alone ÷ median two at once, from the full repetitions."""
+    def phase(n, spans):
+        return machine_ceiling.Phase(processes=n, reps=[len(s) for s in spans],
+                                     seconds=[1.0] * n, cpu_s=[1.0] * n, load_1min=[0, 0],
+                                     steal_fraction=None, spans=spans)
+    alone = phase(1, [[(i * 0.1, i * 0.1 + 0.1, 0.1) for i in range(10)]])
+    # two at once, each repetition 0.125 s and both on their cores: 2 × 0.1 / 0.125 = 1.6
+    pair = phase(2, [[(i * 0.125, (i + 1) * 0.125, 0.125) for i in range(8)]] * 2)
+    c = machine_ceiling.Ceiling("warp", 0, alone, pair, alone)
+    assert c.corun_reps == 16
+    assert c.corun_ceiling == pytest.approx(1.6, abs=1e-3)
+    # too few such repetitions: no figure
+    few = phase(2, [[(0.0, 0.125, 0.125)]] * 2)
+    assert machine_ceiling.Ceiling("warp", 0, alone, few, alone).corun_ceiling is None
