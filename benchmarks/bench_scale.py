@@ -600,7 +600,8 @@ def markdown(doc: dict) -> str:
                                  f"({r['shape']}"
                                  f"{'' if r['ceiling_quiet'] else ', NOT quiet'}; "
                                  f"{r['ceiling_two_cores']}× per CPU second, "
-                                 f"{r['ceiling_corun'] or '–'}× from the co-run repetitions)"
+                                 + ("no co-run figure)" if r["ceiling_corun"] is None else
+                                    f"{r['ceiling_corun']}× from the co-run repetitions)")
                                  for s, r in doc["speedup_vs_ceiling"].items() if "speedup" in r)
                      + ".")
     if "seconds" in gw and doc.get("prepare_vs_gdalwarp"):
