@@ -555,12 +555,11 @@ def against_ceiling(doc: dict, ceiling: dict) -> dict:
             shape = ceiling["step_shape"].get(step)
             if shape not in ceiling["ceilings"]:
                 continue
-            rec = out.setdefault(step, {"shape": shape,
-                                        "ceiling": ceiling["ceilings"][shape],
-                                        "ceiling_quiet": ceiling["quiet"][shape],
-                                        "ceiling_corun": ceiling["ceilings_corun"][shape],
-                                        "ceiling_two_cores":
-                                            ceiling["ceilings_two_cores"][shape]})
+            rec = out.setdefault(step, {
+                "shape": shape, "ceiling": ceiling["ceilings"][shape],
+                "ceiling_quiet": ceiling.get("quiet", {}).get(shape, False),
+                "ceiling_corun": ceiling.get("ceilings_corun", {}).get(shape),
+                "ceiling_two_cores": ceiling["ceilings_two_cores"][shape]})
             rec[name] = x
             rec[f"{name}_of_ceiling"] = round(x / ceiling["ceilings"][shape], 3)
     return out
