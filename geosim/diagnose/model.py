@@ -112,6 +112,9 @@ class RadiometryChoice:
     sigmas: dict[str, Any]
     delta_bic: float
     bic: dict[str, float]
+    #: the other radiometric name where both describe the data equally (name, params,
+    #: delta_bic), listed, never claimed
+    alternatives: list[dict[str, Any]] = field(default_factory=list)
 
     def apply(self, img: np.ndarray) -> np.ndarray:
         if self.name == "haze":

@@ -44,6 +44,15 @@ __all__ = ["BlurSelection", "Alternative", "AcceptedEffect", "select_blur", "del
 MIN_DELTA_BIC = 10.0
 #: smallest radiometric correction worth claiming: RMS change of the image in some band, DN
 MIN_RADIOMETRIC_DN = 1.0
+#: effect size of a radiometric name (round 5): a per-band gain (or transmission) at least
+#: this far from 1 in some band. A white-balance or exposure difference this small is
+#: within what two cameras' calibrations leave, and the gain fitted on a model that lacks
+#: a blur or noise moves by ~1 % (a 0.8 % colour response was claimed for a motion smear)
+COLOUR_MIN_GAIN_DEV = 0.03
+#: ... or an offset (path radiance, dark level) at least this many DN
+RADIOMETRIC_MIN_OFFSET_DN = 2.0
+#: haze over colour response when the two tie: mean z of the (positive) offsets
+HAZE_OFFSET_Z = 3.0
 #: largest per-band gain still called haze (white-balance differences between the UAV camera
 #: and the satellite can lift one band slightly above 1 while path radiance adds offsets)
 HAZE_MAX_GAIN = 1.05
@@ -230,6 +239,29 @@ def select_blur(full: SpectralData, folds: Folds | None = None, *,
     return sel
 
 
+def _colour_size(gain: np.ndarray, offset_dn: np.ndarray | None = None) -> bool:
+    """Effect-size rule of ``colour_response``: some band's gain ≥ COLOUR_MIN_GAIN_DEV from 1
+    (or, affine, some offset ≥ RADIOMETRIC_MIN_OFFSET_DN from 0)."""
+    big_offset = offset_dn is not None and float(np.max(np.abs(offset_dn))) \
+        >= RADIOMETRIC_MIN_OFFSET_DN
+    return bool(float(np.max(np.abs(np.asarray(gain) - 1.0))) >= COLOUR_MIN_GAIN_DEV
+                or big_offset)
+
+
+def _haze_size(transmission: np.ndarray, path_dn: np.ndarray) -> bool:
+    """Effect-size rule of ``haze``: some band's transmission ≥ COLOUR_MIN_GAIN_DEV below 1
+    or its path radiance ≥ RADIOMETRIC_MIN_OFFSET_DN."""
+    return bool(1.0 - float(np.min(transmission)) >= COLOUR_MIN_GAIN_DEV
+                or float(np.max(path_dn)) >= RADIOMETRIC_MIN_OFFSET_DN)
+
+
+def _offsets_significant(rad: RadiometryFit) -> bool:
+    """Haze's own trace: path radiance, offsets positive in every band and jointly
+    HAZE_OFFSET_Z standard errors above zero (one-sided mean of the per-band z)."""
+    z = rad.offset_dn / np.maximum(rad.offset_sigma, 1e-9)
+    return bool(np.all(z > 0) and float(np.mean(z)) >= HAZE_OFFSET_Z)
+
+
 def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str, object]:
     """Choose between no radiometric effect, ``colour_response`` and ``haze``.
 
@@ -237,13 +269,20 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str,
     identity (0 parameters), per-band gain (3), per-band gain and offset (6). The
     affine model is called ``haze`` when the offsets are positive and gains ≤ HAZE_MAX_GAIN
     (path radiance, contrast loss); otherwise it is a ``colour_response`` with an
-    offset.
+    offset. A name is claimed only when its parameters are clearly away from the null
+    (effect size: a gain ≥ 3 % from 1, or an offset ≥ 2 DN; round 5).
+
+    Over a narrow brightness range a per-band gain and a transmission + path radiance
+    describe the same pixels (T·x + P ≈ (T + P/x̄)·x): when the gain-only and the affine
+    models are within MIN_DELTA_BIC of each other, both names are listed, the one claimed
+    being haze only where the affine fit's offsets are significantly positive (path
+    radiance measured, not just allowed) and the other under ``alternatives``.
 
     Returns
     -------
     dict
         ``{"name": None | "haze" | "colour_response", "params": {...}, "delta_bic": float,
-        "bic": {"identity":…, "gain":…, "affine":…}}``
+        "bic": {"identity":…, "gain":…, "affine":…}, "alternatives": [...]}``
     """
     n = rad.n
     n_ind = max(n / corr_px2, 3.0)
@@ -255,39 +294,51 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str,
     b_id = bic(rad.rss_identity, 0)
     b_g = bic(rad.rss_gain_only, bands)
     b_a = bic(rad.rss_affine, 2 * bands)
-    out: dict[str, object] = {"bic": {"identity": b_id, "gain": b_g, "affine": b_a}}
-    best = min(("identity", b_id), ("gain", b_g), ("affine", b_a), key=lambda t: t[1])[0]
-    material_affine = bool(np.max(rad.correction_rms(rad.gain, rad.offset_dn))
-                           >= MIN_RADIOMETRIC_DN)
-    material_gain = bool(np.max(rad.correction_rms(rad.gain_only, np.zeros_like(rad.gain)))
-                         >= MIN_RADIOMETRIC_DN)
-    if best == "affine" and not material_affine:
-        best = "gain" if b_g < b_id else "identity"
-    if best == "gain" and not material_gain:
-        best = "identity"
-    if best == "identity" or b_id - min(b_g, b_a) < MIN_DELTA_BIC:
+    out: dict[str, object] = {"bic": {"identity": b_id, "gain": b_g, "affine": b_a},
+                              "alternatives": []}
+    haze_like = bool(np.all(rad.offset_dn > -2 * rad.offset_sigma)
+                     and np.mean(rad.offset_dn) > 0 and np.all(rad.gain <= HAZE_MAX_GAIN))
+    # each model on its own: better than the identity by MIN_DELTA_BIC, a material change
+    # of the image, and its name's effect size
+    ok_g = bool(b_id - b_g >= MIN_DELTA_BIC
+                and np.max(rad.correction_rms(rad.gain_only, np.zeros_like(rad.gain)))
+                >= MIN_RADIOMETRIC_DN and _colour_size(rad.gain_only))
+    ok_a = bool(b_id - b_a >= MIN_DELTA_BIC
+                and np.max(rad.correction_rms(rad.gain, rad.offset_dn)) >= MIN_RADIOMETRIC_DN
+                and (_haze_size(rad.gain, rad.offset_dn) if haze_like
+                     else _colour_size(rad.gain, rad.offset_dn)))
+    affine = {"name": "haze", "params": {
+        "transmission": [float(v) for v in rad.gain],
+        "path_radiance_dn": [float(v) for v in rad.offset_dn]},
+        "sigmas": {"transmission": [float(v) for v in rad.gain_sigma],
+                   "path_radiance_dn": [float(v) for v in rad.offset_sigma]},
+        "delta_bic": float(b_id - b_a)} if haze_like else {
+        "name": "colour_response", "params": {
+            "gain": [float(v) for v in rad.gain],
+            "offset_dn": [float(v) for v in rad.offset_dn]},
+        "sigmas": {"gain": [float(v) for v in rad.gain_sigma],
+                   "offset_dn": [float(v) for v in rad.offset_sigma]},
+        "delta_bic": float(b_id - b_a)}
+    gain_only = {"name": "colour_response",
+                 "params": {"gain": [float(v) for v in rad.gain_only]},
+                 "sigmas": {"gain": [float(v) for v in rad.gain_sigma]},
+                 "delta_bic": float(b_id - b_g)}
+    # which model the data prefer: decisively (MIN_DELTA_BIC) or a tie, where haze is
+    # preferred only with its path radiance measured; the preferred one is claimed if it
+    # passes its own checks (no fallback to the other: the data did not prefer it)
+    if b_g - b_a >= MIN_DELTA_BIC:
+        first, second, ok_first, ok_second = affine, None, ok_a, False
+    elif b_a - b_g >= MIN_DELTA_BIC:
+        first, second, ok_first, ok_second = gain_only, None, ok_g, False
+    elif haze_like and _offsets_significant(rad):
+        first, second, ok_first, ok_second = affine, gain_only, ok_a, ok_g
+    else:
+        first, second, ok_first, ok_second = gain_only, affine, ok_g, ok_a
+    if not ok_first:
         out.update(name=None, params={}, delta_bic=float(b_id - min(b_g, b_a)))
         return out
-    if best == "affine" and b_g - b_a >= MIN_DELTA_BIC:
-        haze_like = bool(np.all(rad.offset_dn > -2 * rad.offset_sigma)
-                         and np.mean(rad.offset_dn) > 0 and np.all(rad.gain <= HAZE_MAX_GAIN))
-        if haze_like:
-            out.update(name="haze", params={
-                "transmission": [float(v) for v in rad.gain],
-                "path_radiance_dn": [float(v) for v in rad.offset_dn]},
-                sigmas={"transmission": [float(v) for v in rad.gain_sigma],
-                        "path_radiance_dn": [float(v) for v in rad.offset_sigma]},
-                delta_bic=float(b_id - b_a))
-        else:
-            out.update(name="colour_response", params={
-                "gain": [float(v) for v in rad.gain],
-                "offset_dn": [float(v) for v in rad.offset_dn]},
-                sigmas={"gain": [float(v) for v in rad.gain_sigma],
-                        "offset_dn": [float(v) for v in rad.offset_sigma]},
-                delta_bic=float(b_id - b_a))
-        return out
-    out.update(name="colour_response", params={"gain": [float(v) for v in rad.gain_only]},
-               sigmas={"gain": [float(v) for v in rad.gain_sigma]},
-               delta_bic=float(b_id - b_g))
+    out.update(first)
+    if second is not None and ok_second and second["name"] != first["name"]:
+        out["alternatives"] = [{"name": second["name"], "params": second["params"],
+                                "delta_bic": second["delta_bic"]}]
     return out
-

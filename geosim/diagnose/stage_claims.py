@@ -64,7 +64,8 @@ def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     if model.radiometry is not None and model.radiometry.name:
         r = model.radiometry
         cur = cur.without(radiometry=r)
-        out.append((Claim(r.name, r.params, r.sigmas, r.delta_bic), cur))  # type: ignore[arg-type]
+        out.append((Claim(r.name, r.params, r.sigmas, r.delta_bic,  # type: ignore[arg-type]
+                          alternatives=r.alternatives), cur))
     if model.noise is not None and model.noise.claimed:
         n = model.noise
         cur = cur.without(noise=n)

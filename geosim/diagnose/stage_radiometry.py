@@ -56,5 +56,6 @@ def fit_scene_radiometry(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray)
     rad = RadiometryChoice(name=rsel["name"], params=dict(rsel["params"]),  # type: ignore[arg-type]
                            sigmas=dict(rsel.get("sigmas", {})),  # type: ignore[arg-type]
                            delta_bic=float(rsel["delta_bic"]),  # type: ignore[arg-type]
-                           bic=dict(rsel["bic"]))  # type: ignore[arg-type]
+                           bic=dict(rsel["bic"]),  # type: ignore[arg-type]
+                           alternatives=list(rsel.get("alternatives", [])))  # type: ignore[arg-type]
     return model.without(seam=seam, radiometry=rad)
