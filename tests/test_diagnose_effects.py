@@ -8,7 +8,7 @@ import pytest
 from geosim.diagnose.coregister import estimate_shift
 from geosim.diagnose.effects import BLUR_EFFECTS, CATALOGUE, get_effect
 from geosim.diagnose.engine import blockiness
-from geosim.diagnose.fit import build_spectral_data, fit_noise, fit_radiometry
+from geosim.diagnose.fit import RadiometryFit, build_spectral_data, fit_noise, fit_radiometry
 from geosim.diagnose.select import select_blur, select_radiometry
 from geosim.diagnose.simulate import QSimulator
 from geosim.diagnose.spectra import block_origins
@@ -200,3 +200,42 @@ def test_haze_robust_to_changed_content(sim):
     assert out["name"] == "haze"
     np.testing.assert_allclose(out["params"]["transmission"], [0.9, 0.85, 0.75], atol=0.03)
     np.testing.assert_allclose(out["params"]["path_radiance_dn"], [8, 12, 20], atol=3.0)
+
+
+def test_colour_response_needs_an_effect_size(sim):
+    """A per-band gain within 1 % of 1 (what a model missing a smear leaves in the fitted
+    gains) is not a colour response, however many pixels make it significant; 8 % is."""
+    clean = sim(Q_TRUE)
+    mask = np.ones(clean.shape[-2:], bool)
+    tiny = clean * np.array([1.008, 0.996, 1.003])[:, None, None]
+    assert select_radiometry(fit_radiometry(clean, tiny, mask))["name"] is None
+    real = clean * np.array([1.08, 0.96, 1.0])[:, None, None]
+    out = select_radiometry(fit_radiometry(clean, real, mask))
+    assert out["name"] == "colour_response" and out["alternatives"] == []
+
+
+def _tied_fit(offset_z: float) -> RadiometryFit:
+    """A gain-only and an affine model within 1 BIC unit of each other (n/corr = 1000
+    independent samples: the affine's 3 extra parameters cost 3·ln 1000 = 20.7, bought back
+    by a 2.1 % lower residual), both far better than the identity."""
+    g = np.array([0.87, 0.88, 0.84])
+    sig = np.array([2.0, 1.5, 3.5])
+    return RadiometryFit(
+        gain=g, offset_dn=offset_z * sig, gain_sigma=np.full(3, 0.01), offset_sigma=sig,
+        rss_affine=np.full(3, 1000.0 * np.exp(-0.0207 + 0.001)),
+        rss_gain_only=np.full(3, 1000.0), gain_only=np.array([0.93, 0.93, 0.92]),
+        rss_identity=np.full(3, 5000.0), n=4000, model_mean=np.full(3, 120.0),
+        model_meansq=np.full(3, 120.0**2 + 400.0))
+
+
+def test_radiometric_tie_lists_the_other_name():
+    """Over a narrow brightness range T·x + P ≈ g·x: when the gain-only and affine models
+    tie, one name is claimed and the other listed. Haze is claimed only when its path
+    radiance is measured (offsets significantly positive), else the per-band gain."""
+    hz = select_radiometry(_tied_fit(offset_z=5.0), corr_px2=4.0)
+    assert abs(hz["bic"]["gain"] - hz["bic"]["affine"]) < 10
+    assert hz["name"] == "haze"
+    assert [a["name"] for a in hz["alternatives"]] == ["colour_response"]
+    col = select_radiometry(_tied_fit(offset_z=1.0), corr_px2=4.0)
+    assert col["name"] == "colour_response" and "offset_dn" not in col["params"]
+    assert [a["name"] for a in col["alternatives"]] == ["haze"]
