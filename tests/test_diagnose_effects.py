@@ -203,11 +203,12 @@ def test_haze_robust_to_changed_content(sim):
 
 
 def test_colour_response_needs_an_effect_size(sim):
-    """A per-band gain within 1 % of 1 (what a model missing a smear leaves in the fitted
-    gains) is not a colour response, however many pixels make it significant; 8 % is."""
+    """A per-band gain within 2 % of 1 (a model missing a smear left 0.8 % in development
+    c153) is not a colour response, however many pixels make it significant and though it
+    changes the image by > 1 DN RMS (claimed before round 5); 8 % is."""
     clean = sim(Q_TRUE)
     mask = np.ones(clean.shape[-2:], bool)
-    tiny = clean * np.array([1.008, 0.996, 1.003])[:, None, None]
+    tiny = clean * np.array([1.02, 0.985, 1.0])[:, None, None]
     assert select_radiometry(fit_radiometry(clean, tiny, mask))["name"] is None
     real = clean * np.array([1.08, 0.96, 1.0])[:, None, None]
     out = select_radiometry(fit_radiometry(clean, real, mask))

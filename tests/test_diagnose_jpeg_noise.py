@@ -113,3 +113,24 @@ def test_block_offset_is_respected(smooth):
     table = _libjpeg_table(50)
     assert right[0, 1] == table[0, 1] and right[1, 0] == table[1, 0]
     assert not (wrong[0, 1] == table[0, 1] and wrong[1, 0] == table[1, 0])
+
+
+def test_small_noise_under_jpeg_measured_but_not_claimed(smooth):
+    """Under JPEG the claim needs a white variance of MIN_NOISE_VAR_COMPRESSED_DN2 (4 DN²):
+    σ = 1.5 DN (2.25 DN², read as ≈ 1.4 by the censored estimate, above the 1 DN² floor
+    used without JPEG) is not claimed; σ = 2.5 DN is, near its variance."""
+    from geosim.diagnose.noise import MIN_NOISE_VAR_COMPRESSED_DN2
+
+    assert MIN_NOISE_VAR_COMPRESSED_DN2 == 4.0
+    rng = np.random.default_rng(7)
+    mask = np.ones(smooth.shape[-2:], bool)
+    org = block_origins(smooth.shape[-2:], block_px=32)
+    for sigma, claimed in ((1.5, False), (2.5, True)):
+        noisy = np.clip(np.rint(smooth + rng.normal(0, sigma, smooth.shape)), 0, 255)
+        est = estimate_noise(_jpeg(noisy, 40), _jpeg(smooth, 40), mask, origins=org,
+                             block_px=32, quantized=True, uncompressed=smooth,
+                             block_offset_px=(0, 0))
+        assert est.white_var_dn2 > 1.0, (sigma, est.white_var_dn2)
+        assert est.claimed is claimed, (sigma, est.white_var_dn2, est.whiteness)
+        if claimed:
+            assert abs(est.white_var_dn2 - sigma**2) < 0.3 * sigma**2, est.white_var_dn2
