@@ -24,6 +24,17 @@ __all__ = ["make_summary", "mismatch_maps", "plot_data", "full_transfer", "PHYSI
 PHYSICAL_Q = (0.5, 2.0)
 
 
+def _ambiguity_note(claim: Claim) -> str:
+    """Why a claim has alternatives: blurs tie on held-out blocks, radiometric names on
+    BIC (their alternatives carry ``delta_bic``, not ``heldout_gain``)."""
+    names = ", ".join(a["name"] for a in claim.alternatives)
+    if all("heldout_gain" not in a for a in claim.alternatives):
+        return (f"{claim.name} and {names} explain the pixels about equally well (BIC "
+                "within the claiming margin); the data cannot tell them apart")
+    return (f"{claim.name} and {names} predict the held-out blocks about equally well "
+            "(same family); the data cannot tell them apart")
+
+
 def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
                  claims: list[Claim], eval_mask: np.ndarray, se_of: Callable[[np.ndarray], float],
                  refined: np.ndarray, withdrawn: list[dict[str, str]]) -> dict[str, Any]:
@@ -34,10 +45,7 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
     ref_rmse = rmse(model.deterministic(inp.simulate), inp.real, eval_mask)
     ref_se = se_of(refined)
     ambiguities = [{"claimed": c.name, "alternatives": [a["name"] for a in c.alternatives],
-                    "note": (f"{c.name} and {', '.join(a['name'] for a in c.alternatives)} "
-                             "predict the held-out blocks about equally well (same family); "
-                             "the data cannot tell them apart")}
-                   for c in claims if c.alternatives]
+                    "note": _ambiguity_note(c)} for c in claims if c.alternatives]
     reg, n = model.registration, model.noise
     qs = sel.final.sigmas.get("q", float("nan"))
     q_grid = setup.q_grid
