@@ -123,15 +123,15 @@ def test_haze_and_colour_response(sim):
     hz = get_effect("haze").apply(clean, transmission=[0.9, 0.85, 0.75],
                                   path_radiance_dn=[8, 12, 20])
     out = select_radiometry(fit_radiometry(clean, hz, mask))
-    assert out["name"] == "haze"
-    np.testing.assert_allclose(out["params"]["transmission"], [0.9, 0.85, 0.75], atol=0.02)
-    np.testing.assert_allclose(out["params"]["path_radiance_dn"], [8, 12, 20], atol=2.0)
+    assert out.name == "haze"
+    np.testing.assert_allclose(out.params["transmission"], [0.9, 0.85, 0.75], atol=0.02)
+    np.testing.assert_allclose(out.params["path_radiance_dn"], [8, 12, 20], atol=2.0)
     col = get_effect("colour_response").apply(clean, gain=[1.1, 0.95, 0.8])
     out = select_radiometry(fit_radiometry(clean, col, mask))
-    assert out["name"] == "colour_response"
-    np.testing.assert_allclose(out["params"]["gain"], [1.1, 0.95, 0.8], atol=0.02)
+    assert out.name == "colour_response"
+    np.testing.assert_allclose(out.params["gain"], [1.1, 0.95, 0.8], atol=0.02)
     out = select_radiometry(fit_radiometry(clean, clean + 0.0, mask))
-    assert out["name"] is None
+    assert out.name is None
 
 
 def test_misregistration_recovered(sim):
@@ -197,9 +197,9 @@ def test_haze_robust_to_changed_content(sim):
         real[:, r0:r0 + 24, c0:c0 + 16] *= 0.35
     mask = np.ones(clean.shape[-2:], bool)
     out = select_radiometry(fit_radiometry(clean, real, mask))
-    assert out["name"] == "haze"
-    np.testing.assert_allclose(out["params"]["transmission"], [0.9, 0.85, 0.75], atol=0.03)
-    np.testing.assert_allclose(out["params"]["path_radiance_dn"], [8, 12, 20], atol=3.0)
+    assert out.name == "haze"
+    np.testing.assert_allclose(out.params["transmission"], [0.9, 0.85, 0.75], atol=0.03)
+    np.testing.assert_allclose(out.params["path_radiance_dn"], [8, 12, 20], atol=3.0)
 
 
 def test_colour_response_needs_an_effect_size(sim):
@@ -209,10 +209,10 @@ def test_colour_response_needs_an_effect_size(sim):
     clean = sim(Q_TRUE)
     mask = np.ones(clean.shape[-2:], bool)
     tiny = clean * np.array([1.02, 0.985, 1.0])[:, None, None]
-    assert select_radiometry(fit_radiometry(clean, tiny, mask))["name"] is None
+    assert select_radiometry(fit_radiometry(clean, tiny, mask)).name is None
     real = clean * np.array([1.08, 0.96, 1.0])[:, None, None]
     out = select_radiometry(fit_radiometry(clean, real, mask))
-    assert out["name"] == "colour_response" and out["alternatives"] == []
+    assert out.name == "colour_response" and out.alternatives == []
 
 
 def _tied_fit(offset_z: float) -> RadiometryFit:
@@ -234,9 +234,9 @@ def test_radiometric_tie_lists_the_other_name():
     tie, one name is claimed and the other listed. Haze is claimed only when its path
     radiance is measured (offsets significantly positive), else the per-band gain."""
     hz = select_radiometry(_tied_fit(offset_z=5.0), corr_px2=4.0)
-    assert abs(hz["bic"]["gain"] - hz["bic"]["affine"]) < 10
-    assert hz["name"] == "haze"
-    assert [a["name"] for a in hz["alternatives"]] == ["colour_response"]
+    assert abs(hz.bic["gain"] - hz.bic["affine"]) < 10
+    assert hz.name == "haze"
+    assert [a["name"] for a in hz.alternatives] == ["colour_response"]
     col = select_radiometry(_tied_fit(offset_z=1.0), corr_px2=4.0)
-    assert col["name"] == "colour_response" and "offset_dn" not in col["params"]
-    assert [a["name"] for a in col["alternatives"]] == ["haze"]
+    assert col.name == "colour_response" and "offset_dn" not in col.params
+    assert [a["name"] for a in col.alternatives] == ["haze"]

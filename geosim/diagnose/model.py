@@ -103,20 +103,42 @@ class CompressionFit:
                                                block_offset_px=self.offset_px)
 
 
-@dataclass
+@dataclass(frozen=True)
 class RadiometryChoice:
-    """``haze`` or ``colour_response`` (or neither) with parameters and evidence."""
+    """``haze`` or ``colour_response`` (or neither) with parameters and evidence.
+
+    Returned by :func:`geosim.diagnose.select.select_radiometry`.
+
+    Attributes
+    ----------
+    name : str or None
+        ``"haze"``, ``"colour_response"`` or None (no radiometric effect claimed).
+    params : dict of str to list of float
+        Per-band parameters of ``name``: ``transmission`` (unitless) and
+        ``path_radiance_dn`` (DN) for haze; ``gain`` (unitless) and optionally
+        ``offset_dn`` (DN) for a colour response; empty when ``name`` is None.
+    sigmas : dict of str to list of float
+        Standard errors of ``params``, same keys and units; empty when ``name`` is None.
+    delta_bic : float
+        BIC of the identity minus that of the claimed model (of the better model
+        when nothing is claimed); positive favours the effect.
+    bic : dict of str to float
+        BIC of the ``"identity"``, ``"gain"`` (per-band gain) and ``"affine"`` (gain and
+        offset) models.
+    alternatives : list of dict
+        The other radiometric name where both describe the data equally (``name``,
+        ``params``, ``delta_bic``), listed, never claimed.
+    """
 
     name: str | None
-    params: dict[str, Any]
-    sigmas: dict[str, Any]
+    params: dict[str, list[float]]
+    sigmas: dict[str, list[float]]
     delta_bic: float
     bic: dict[str, float]
-    #: the other radiometric name where both describe the data equally (name, params,
-    #: delta_bic), listed, never claimed
     alternatives: list[dict[str, Any]] = field(default_factory=list)
 
     def apply(self, img: np.ndarray) -> np.ndarray:
+        """``img`` (bands first, DN) with the claimed effect applied; unchanged if none."""
         if self.name == "haze":
             return get_effect("haze").apply(img, **self.params)
         if self.name == "colour_response":

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -35,6 +36,7 @@ from geosim.diagnose.fit import (
     evaluate_chi2,
     fit_transfer,
 )
+from geosim.diagnose.model import RadiometryChoice
 
 __all__ = ["BlurSelection", "Alternative", "AcceptedEffect", "select_blur", "delta_bic",
            "select_radiometry", "cv_chi2", "at_bound", "clearly_present", "plausible",
@@ -262,7 +264,7 @@ def _offsets_significant(rad: RadiometryFit) -> bool:
     return bool(np.all(z > 0) and float(np.mean(z)) >= HAZE_OFFSET_Z)
 
 
-def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str, object]:
+def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> RadiometryChoice:
     """Choose between no radiometric effect, ``colour_response`` and ``haze``.
 
     BIC on the image-domain residuals with n/corr_px2 independent samples:
@@ -278,11 +280,21 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str,
     being haze only where the affine fit's offsets are significantly positive (path
     radiance measured, not just allowed) and the other under ``alternatives``.
 
+    Parameters
+    ----------
+    rad : RadiometryFit
+        Gain-only, affine and identity fits of the model to the scene (residuals in DN²).
+    corr_px2 : float
+        Area of one independent sample, px² (pixels per independent residual).
+
     Returns
     -------
-    dict
-        ``{"name": None | "haze" | "colour_response", "params": {...}, "delta_bic": float,
-        "bic": {"identity":…, "gain":…, "affine":…}, "alternatives": [...]}``
+    RadiometryChoice
+        ``name`` None, ``"haze"`` or ``"colour_response"``; ``params`` and ``sigmas`` per
+        band (gain / transmission unitless, offsets in DN; both empty when nothing is
+        claimed); ``delta_bic`` of the claimed (or best) model over the identity; ``bic``
+        of ``"identity"``, ``"gain"`` and ``"affine"``; ``alternatives`` the tied other
+        name (``name``, ``params``, ``delta_bic``), listed, never claimed.
     """
     n = rad.n
     n_ind = max(n / corr_px2, 3.0)
@@ -294,8 +306,7 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str,
     b_id = bic(rad.rss_identity, 0)
     b_g = bic(rad.rss_gain_only, bands)
     b_a = bic(rad.rss_affine, 2 * bands)
-    out: dict[str, object] = {"bic": {"identity": b_id, "gain": b_g, "affine": b_a},
-                              "alternatives": []}
+    bics = {"identity": b_id, "gain": b_g, "affine": b_a}
     haze_like = bool(np.all(rad.offset_dn > -2 * rad.offset_sigma)
                      and np.mean(rad.offset_dn) > 0 and np.all(rad.gain <= HAZE_MAX_GAIN))
     # each model on its own: better than the identity by MIN_DELTA_BIC, a material change
@@ -307,7 +318,7 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str,
                 and np.max(rad.correction_rms(rad.gain, rad.offset_dn)) >= MIN_RADIOMETRIC_DN
                 and (_haze_size(rad.gain, rad.offset_dn) if haze_like
                      else _colour_size(rad.gain, rad.offset_dn)))
-    affine = {"name": "haze", "params": {
+    affine: dict[str, Any] = {"name": "haze", "params": {
         "transmission": [float(v) for v in rad.gain],
         "path_radiance_dn": [float(v) for v in rad.offset_dn]},
         "sigmas": {"transmission": [float(v) for v in rad.gain_sigma],
@@ -319,10 +330,10 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str,
         "sigmas": {"gain": [float(v) for v in rad.gain_sigma],
                    "offset_dn": [float(v) for v in rad.offset_sigma]},
         "delta_bic": float(b_id - b_a)}
-    gain_only = {"name": "colour_response",
-                 "params": {"gain": [float(v) for v in rad.gain_only]},
-                 "sigmas": {"gain": [float(v) for v in rad.gain_sigma]},
-                 "delta_bic": float(b_id - b_g)}
+    gain_only: dict[str, Any] = {"name": "colour_response",
+                                 "params": {"gain": [float(v) for v in rad.gain_only]},
+                                 "sigmas": {"gain": [float(v) for v in rad.gain_sigma]},
+                                 "delta_bic": float(b_id - b_g)}
     # which model the data prefer: decisively (MIN_DELTA_BIC) or a tie, where haze is
     # preferred only with its path radiance measured; the preferred one is claimed if it
     # passes its own checks (no fallback to the other: the data did not prefer it)
@@ -335,10 +346,11 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> dict[str,
     else:
         first, second, ok_first, ok_second = gain_only, affine, ok_g, ok_a
     if not ok_first:
-        out.update(name=None, params={}, delta_bic=float(b_id - min(b_g, b_a)))
-        return out
-    out.update(first)
+        return RadiometryChoice(name=None, params={}, sigmas={},
+                                delta_bic=float(b_id - min(b_g, b_a)), bic=bics)
+    alternatives: list[dict[str, Any]] = []
     if second is not None and ok_second and second["name"] != first["name"]:
-        out["alternatives"] = [{"name": second["name"], "params": second["params"],
-                                "delta_bic": second["delta_bic"]}]
-    return out
+        alternatives = [{"name": second["name"], "params": second["params"],
+                         "delta_bic": second["delta_bic"]}]
+    return RadiometryChoice(name=first["name"], params=first["params"], sigmas=first["sigmas"],
+                            delta_bic=first["delta_bic"], bic=bics, alternatives=alternatives)

@@ -7,7 +7,7 @@ import numpy as np
 from scipy import ndimage
 
 from geosim.diagnose.fit import fit_radiometry
-from geosim.diagnose.model import ForwardModel, RadiometryChoice
+from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.seam import find_gain_step
 from geosim.diagnose.select import select_radiometry
 from geosim.diagnose.stage_inputs import Inputs
@@ -51,11 +51,6 @@ def fit_scene_radiometry(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray)
     seam = find_gain_step(lp_blur, lp_real, fit_mask, corr_px2=corr)
     if seam is not None:
         lp_blur = lp_blur * np.where(seam.side, seam.factor, 1.0)
-    rsel = select_radiometry(fit_radiometry(lp_blur, lp_real, fit_mask, corr_px2=corr),
-                             corr_px2=corr)
-    rad = RadiometryChoice(name=rsel["name"], params=dict(rsel["params"]),  # type: ignore[arg-type]
-                           sigmas=dict(rsel.get("sigmas", {})),  # type: ignore[arg-type]
-                           delta_bic=float(rsel["delta_bic"]),  # type: ignore[arg-type]
-                           bic=dict(rsel["bic"]),  # type: ignore[arg-type]
-                           alternatives=list(rsel.get("alternatives", [])))  # type: ignore[arg-type]
+    rad = select_radiometry(fit_radiometry(lp_blur, lp_real, fit_mask, corr_px2=corr),
+                            corr_px2=corr)
     return model.without(seam=seam, radiometry=rad)
