@@ -318,17 +318,16 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> Radiometr
                 and np.max(rad.correction_rms(rad.gain, rad.offset_dn)) >= MIN_RADIOMETRIC_DN
                 and (_haze_size(rad.gain, rad.offset_dn) if haze_like
                      else _colour_size(rad.gain, rad.offset_dn)))
-    affine: dict[str, Any] = {"name": "haze", "params": {
-        "transmission": [float(v) for v in rad.gain],
-        "path_radiance_dn": [float(v) for v in rad.offset_dn]},
-        "sigmas": {"transmission": [float(v) for v in rad.gain_sigma],
-                   "path_radiance_dn": [float(v) for v in rad.offset_sigma]},
-        "delta_bic": float(b_id - b_a)} if haze_like else {
-        "name": "colour_response", "params": {
-            "gain": [float(v) for v in rad.gain],
-            "offset_dn": [float(v) for v in rad.offset_dn]},
-        "sigmas": {"gain": [float(v) for v in rad.gain_sigma],
-                   "offset_dn": [float(v) for v in rad.offset_sigma]},
+    # the affine fit is haze (transmission, path radiance) or a colour response with an
+    # offset (gain, offset): the same numbers under the name's own parameter names
+    name_a, gain_key, offset_key = (("haze", "transmission", "path_radiance_dn") if haze_like
+                                    else ("colour_response", "gain", "offset_dn"))
+    affine: dict[str, Any] = {
+        "name": name_a,
+        "params": {gain_key: [float(v) for v in rad.gain],
+                   offset_key: [float(v) for v in rad.offset_dn]},
+        "sigmas": {gain_key: [float(v) for v in rad.gain_sigma],
+                   offset_key: [float(v) for v in rad.offset_sigma]},
         "delta_bic": float(b_id - b_a)}
     gain_only: dict[str, Any] = {"name": "colour_response",
                                  "params": {"gain": [float(v) for v in rad.gain_only]},
