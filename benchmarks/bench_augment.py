@@ -37,8 +37,9 @@ Per-worker rate of the whole command (issue 13's target, >= 0.5 pairs/s per work
 <= 2 CPU s per output pair, with the default deflate output): ``--end-to-end``, whose
 ``cpu_pairs_per_second`` per code is that rate; run it with ``OMP_NUM_THREADS=1
 OPENCV_FOR_THREADS_NUM=1 GDAL_NUM_THREADS=1`` as a Dask worker runs (OpenCV is set to one
-thread while timed either way, and ``GEOSIM_THREADS=1`` is set for the command, whose
-in-process engine would otherwise give its tasks every core).
+thread while timed either way, and ``GEOSIM_THREADS=1`` is set for the command: the
+default since 23 Nov, but the in-process engine of earlier revisions, which ``--baseline-rev``
+may time, gave its tasks every core).
 """
 
 from __future__ import annotations
@@ -167,17 +168,17 @@ def end_to_end_one_thread(size: int, n: int, first_seed: int = 0,
 
     One pair, ``n`` outputs, seed ``first_seed``, after an untimed one-output warm-up in
     the same process (a worker's steady state); one thread for OpenCV, GDAL and FFTs as on
-    a worker (``GEOSIM_THREADS=1`` while timed: the in-process engine would give the task
-    every core);
+    a worker (``GEOSIM_THREADS=1`` while timed: the in-process engine of revisions before
+    23 Nov would give the task every core);
     ``compress``: the GeoTIFF compression (``None``: the code's default, for revisions
     without the option).
     """
     a, b = _pair(size)
     before = cv2.getNumThreads()
     cv2.setNumThreads(1)
-    # run_augment runs its tasks in-process with every core for OpenCV, GDAL and FFTs
-    # (geosim.engine.in_process_threads) unless GEOSIM_THREADS says otherwise; a Dask
-    # worker runs them with one: time what a worker does
+    # revisions before 23 Nov ran run_augment's in-process tasks with every core for
+    # OpenCV, GDAL and FFTs unless GEOSIM_THREADS said otherwise; a Dask worker runs them
+    # with one: time what a worker does, whatever the revision
     threads_env = os.environ.get("GEOSIM_THREADS")
     os.environ["GEOSIM_THREADS"] = "1"
     try:

@@ -22,7 +22,8 @@ Both run on the same 5000 × 5000 RGB uint8 tiles (the Brazil pasture orthomosai
 ``GEOSIM_THREADS=N`` (GDAL block decoding, FFTs, OpenCV) and the reference with
 ``cv2.setNumThreads(N)`` (its FFTs use one thread, SciPy's default); BLAS and OpenMP get
 one thread in both. With 1 the two are compared CPU for CPU; ``--threads 0`` leaves the
-command its default (every core) and the reference OpenCV's.
+command its default (one thread since 23 Nov; every core before, for ``--baseline`` code of
+then) and the reference OpenCV's.
 
 The two alternate over ``--rounds`` rounds (same tiles, same load); each run is a fresh
 process and every command run degrades every tile (its manifest is cleared). Reported:

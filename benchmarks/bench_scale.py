@@ -32,12 +32,13 @@ Usage::
     python benchmarks/bench_scale.py --size 20000          # the full size (long)
     python benchmarks/bench_scale.py --size 6000 --tile-px 2000   # a smaller run
     python benchmarks/bench_scale.py --workers 1                  # one process only
-    python benchmarks/bench_scale.py --workers 1t,1,2             # also one thread in-process
+    python benchmarks/bench_scale.py --workers 1t2,1,2            # also in-process on 2 threads
     python benchmarks/bench_scale.py --steps grid,footprints,align  # only the first steps
 
-``1t`` runs in this process on one thread (``GEOSIM_THREADS=1``), like one single-threaded
-worker without Dask: the baseline of pure multi-process scaling (``1`` uses every core for
-FFTs, OpenCV and GDAL, so it is partly parallel already).
+``1`` runs in this process on one core, like one single-threaded worker without Dask: the
+baseline of pure multi-process scaling. ``1tK`` runs in this process with K threads per task
+(``GEOSIM_THREADS=K``; ``1t`` = ``1t1``, the same as ``1`` since 23 Nov): ``1t2`` is what
+``--workers 1`` did before, every core of this machine for FFTs, OpenCV and GDAL.
 
 Before the steps (unless ``--no-ceiling``), ``machine_ceiling.py`` measures what this
 machine gives two single-threaded processes over one on plain reference workloads
@@ -234,7 +235,8 @@ def child_step(step: str, site_file: str, out: str, workers: int | None) -> dict
         load0 = os.getloadavg()[0]
         driver0, workers0 = _own_cpu_seconds(), _workers_cpu_seconds(client)
         profile = os.environ.get("GEOSIM_BENCH_PROFILE")
-        name = f"{step}_w{workers}" + ("t" if os.environ.get("GEOSIM_THREADS") == "1" else "")
+        threads = os.environ.get("GEOSIM_THREADS")
+        name = f"{step}_w{workers}" + (f"t{threads}" if threads else "")
         with _task_stream(client) as stream, _profiled(profile, name):
             t0, epoch0 = time.perf_counter(), time.time()
             doc = run_pipeline(site, out, only=[step], echo=lambda s: None)
@@ -403,14 +405,17 @@ def run_gdalwarp(flights: list[Path], out_dir: Path, grid: dict) -> dict:
 def run_steps(site_file: Path, out: Path, workers: str, size: int, tile_px: int,
               steps: tuple[str, ...] = STEPS) -> list[dict]:
     """Every step of ``steps``, each in its own child process, on ``workers`` (a count, or
-    ``1t``: in this process on one thread); one record per step."""
+    ``1tK``: in this process on K threads per task); one record per step."""
     flight_mp = 3 * size * size / 1e6
     rows = []
-    env = {**os.environ, **({"GEOSIM_THREADS": "1"} if workers.endswith("t") else {})}
+    count, _, threads = workers.partition("t")
+    env = {k: v for k, v in os.environ.items() if k != "GEOSIM_THREADS"}
+    if workers != count:
+        env["GEOSIM_THREADS"] = threads or "1"
     for step in steps:
         before = _dir_bytes(out) if out.is_dir() else {}
         cmd = [sys.executable, __file__, "--child", step, "--site", str(site_file),
-               "--run", str(out), "--workers", workers.rstrip("t")]
+               "--run", str(out), "--workers", count]
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
         if proc.returncode != 0:
             raise RuntimeError(f"step {step} failed:\n{proc.stderr[-3000:]}")
@@ -514,7 +519,7 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
     if "seconds" in gw and prepare:
         doc["prepare_vs_gdalwarp"] = {w: round(v / gw["seconds"], 2) for w, v in prepare.items()}
     if len(workers) > 1:
-        # against the default in-process run ("1") when there is one; "1t" apart below
+        # against the in-process run ("1", one core) when there is one; "1t" apart below
         w1, wn = ("1" if "1" in workers[:-1] else workers[0]), workers[-1]
         doc["speedup"] = {s: round(by[(w1, s)]["seconds"] / by[(wn, s)]["seconds"], 2)
                           for s in run_steps_}
@@ -624,8 +629,8 @@ def main() -> None:
     ap.add_argument("--tile-px", type=int, default=5000, help="tile side, px (default 5000)")
     ap.add_argument("--workers", default="1,2",
                     help="worker counts to compare, comma-separated (default 1,2); 1 runs "
-                         "in-process, N > 1 on a local Dask cluster of N processes, 1t "
-                         "in-process on one thread (GEOSIM_THREADS=1)")
+                         "in-process on one core, N > 1 on a local Dask cluster of N "
+                         "processes, 1tK in-process on K threads per task (GEOSIM_THREADS=K)")
     ap.add_argument("--out", type=Path, default=RESULT)
     ap.add_argument("--keep", action="store_true", help="keep the temporary site and run")
     ap.add_argument("--site-cache", type=Path,
@@ -648,8 +653,9 @@ def main() -> None:
         print(json.dumps(child_step(args.child, args.site, args.run, int(args.workers))))
         return
     workers = [w.strip() for w in str(args.workers).split(",")]
-    if not all(w.rstrip("t").isdigit() and (not w.endswith("t") or w == "1t") for w in workers):
-        ap.error("--workers: give counts such as 1,2 (and 1t for one thread in-process)")
+    if not all(w.isdigit() or (w.startswith("1t") and (w[2:] == "" or w[2:].isdigit()))
+               for w in workers):
+        ap.error("--workers: give counts such as 1,2 (and 1tK for K threads in-process)")
     steps = tuple(s.strip() for s in args.steps.split(","))
     if not set(steps) <= set(STEPS):
         ap.error(f"--steps: choose among {', '.join(STEPS)}")

@@ -13,7 +13,7 @@ picklable, so that they can be sent to worker processes.
 Engines
 -------
 :class:`InProcess`
-    Every task in this process, one after the other (``--workers 1``).
+    Every task in this process, one after the other, on one thread (``--workers 1``).
 :class:`LocalCluster`
     A ``dask.distributed`` cluster of N single-threaded worker processes on this
     machine, bound to 127.0.0.1 with no dashboard (``--workers N``).
@@ -129,12 +129,17 @@ _TASK_THREADS: ContextVar[int | None] = ContextVar("geosim_task_threads", defaul
 def task_threads() -> int:
     """Threads the running task may use for FFTs, OpenCV and GDAL (warps, block decoding).
 
-    Inside a task: what its engine gave it (1 on a Dask worker, every core in this
-    process). Outside any task (a library call, the driver's own work): ``GEOSIM_THREADS``
-    if set, else every core.
+    Inside a task: what its engine gave it (one, on a Dask worker and in this process).
+    Outside any task: the driver's own work under an active in-process engine
+    (``--workers 1``) gets one thread, like its tasks, so that ``--workers 1`` uses one
+    core; under a Dask engine (whose workers wait while the driver works) and in a
+    library call with no engine, every core. ``GEOSIM_THREADS`` overrides all of these.
     """
     threads = _TASK_THREADS.get()
-    return threads if threads is not None else _threads_from_env(os.cpu_count() or 1)
+    if threads is not None:
+        return threads
+    in_process_driver = isinstance(_ACTIVE.get(), InProcess)
+    return _threads_from_env(1 if in_process_driver else os.cpu_count() or 1)
 
 
 @contextmanager
@@ -169,9 +174,10 @@ def task_limits(threads: int) -> Iterator[None]:
 
 
 def in_process_threads() -> int:
-    """Threads of a task run in this process (``--workers 1``): every core, or
+    """Threads of a task run in this process (``--workers 1``): one, like a task on a
+    single-threaded Dask worker (so ``--workers N`` means N cores whatever N is), or
     ``GEOSIM_THREADS``."""
-    return _threads_from_env(os.cpu_count() or 1)
+    return _threads_from_env(1)
 
 
 def worker_threads() -> int:
@@ -474,12 +480,23 @@ def using(engine: Engine) -> Iterator[Engine]:
 @contextmanager
 def open_engine(workers: int | None = None, scheduler: str | None = None
                 ) -> Iterator[InProcess | DaskEngine]:
-    """Make the engine of ``--workers`` / ``--scheduler`` active; close it on exit."""
+    """Make the engine of ``--workers`` / ``--scheduler`` active; close it on exit.
+
+    In-process (``--workers 1``), the command's own OpenCV calls between tasks also get
+    the tasks' budget (:func:`in_process_threads`), so that the whole command uses one
+    core; GDAL's asks :func:`task_threads`, which knows the engine.
+    """
+    import cv2
+
     engine = make_engine(workers, scheduler)
+    cv2_threads = cv2.getNumThreads()
+    if isinstance(engine, InProcess):
+        cv2.setNumThreads(in_process_threads())
     try:
         with using(engine):
             yield engine
     finally:
+        cv2.setNumThreads(cv2_threads)
         engine.close()
 
 

@@ -240,7 +240,7 @@ def test_fill_invalid_equals_plain_pull_push(shape: tuple[int, ...], dtype: type
 
 def test_partial_tile_fill_same_on_one_and_two_threads() -> None:
     """The fill (OpenCV resizes) and the fast path give the same bits whatever the task's
-    thread budget (one on a Dask worker, every core in-process)."""
+    thread budget (one by default, more with ``GEOSIM_THREADS``)."""
     from geosim.engine import task_limits
 
     image = textured_rgb(640, 480, seed=9)

@@ -66,9 +66,13 @@ def _square(x: int) -> int:
 
 @pytest.fixture(scope="module")
 def base(samples_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The steps run in this process (--workers 1): the reference outputs."""
+    """The steps run in this process (--workers 1) on two threads per task
+    (``GEOSIM_THREADS=2``): the reference outputs, which single-threaded workers must
+    reproduce whatever the thread count."""
     out = tmp_path_factory.mktemp("engine") / "base"
-    record = _run(samples_dir / "site.toml", out, "--workers", "1", *_only(STEPS))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GEOSIM_THREADS", "2")
+        record = _run(samples_dir / "site.toml", out, "--workers", "1", *_only(STEPS))
     assert record["engine"] == {"kind": "in-process", "workers": 1}
     return out
 
@@ -111,18 +115,21 @@ def _thread_budget(_: int) -> tuple[int, int, int, int]:
     return task_threads(), scipy.fft.get_workers(), cv2.getNumThreads(), blas
 
 
-def test_thread_budget_one_per_worker_every_core_in_process(
+def test_thread_budget_one_thread_per_worker_in_process_too(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """A task on a worker of a multi-process engine uses one thread for FFTs, OpenCV and
-    GDAL; in this process, every core; BLAS one thread everywhere (bit-identical sums).
-    Restored after the task. geosim's FFT kernels take scipy's default workers (the
-    budget) unless told otherwise."""
+    """A task uses one thread for FFTs, OpenCV and GDAL on a worker of a multi-process
+    engine and in this process (``--workers N`` = N cores); BLAS one thread everywhere
+    (bit-identical sums); ``GEOSIM_THREADS`` raises the budget. Restored after the task.
+    The command's own work between tasks: one thread under ``--workers 1`` (GDAL and
+    OpenCV), every core under a cluster and in a library call. geosim's FFT kernels take
+    scipy's default workers (the budget) unless told otherwise."""
     import inspect
 
     import cv2
     import scipy.fft
 
     from geosim.degrade.core import SpectralDegrader, blur
+    from geosim.engine import task_threads
     from geosim.physics.otf import apply_transfer
 
     for kernel in (blur, SpectralDegrader, apply_transfer):
@@ -130,12 +137,20 @@ def test_thread_budget_one_per_worker_every_core_in_process(
     monkeypatch.delenv("GEOSIM_THREADS", raising=False)
     cores = os.cpu_count() or 1
     cv2_before, fft_before = cv2.getNumThreads(), scipy.fft.get_workers()
-    assert parallel_map(_thread_budget, [0]) == [(cores, cores, cores, 1)]
-    assert (cv2.getNumThreads(), scipy.fft.get_workers()) == (cv2_before, fft_before)
-    with open_engine(2):
-        assert parallel_map(_thread_budget, [0, 1, 2]) == [(1, 1, 1, 1)] * 3
-    monkeypatch.setenv("GEOSIM_THREADS", "1")
     assert parallel_map(_thread_budget, [0]) == [(1, 1, 1, 1)]
+    assert (cv2.getNumThreads(), scipy.fft.get_workers()) == (cv2_before, fft_before)
+    assert task_threads() == cores  # a library call: no engine
+    with open_engine(1):
+        assert (task_threads(), cv2.getNumThreads()) == (1, 1)
+        assert parallel_map(_thread_budget, [0]) == [(1, 1, 1, 1)]
+    assert cv2.getNumThreads() == cv2_before
+    with open_engine(2):
+        assert task_threads() == cores
+        assert parallel_map(_thread_budget, [0, 1, 2]) == [(1, 1, 1, 1)] * 3
+    monkeypatch.setenv("GEOSIM_THREADS", "2")
+    assert parallel_map(_thread_budget, [0]) == [(2, 2, 2, 1)]
+    with open_engine(1):
+        assert (task_threads(), cv2.getNumThreads()) == (2, 2)
 
 
 def test_in_process_map_keeps_order_and_errors() -> None:

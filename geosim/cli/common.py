@@ -47,7 +47,7 @@ def engine_options(command: Callable[..., Any]) -> Callable[..., Any]:
         "--workers", "workers", type=click.IntRange(min=1), default=None,
         envvar="GEOSIM_WORKERS", show_envvar=True,
         help="Worker processes of a local Dask cluster (default: the machine's cores, "
-             f"{default_workers()} here); 1 runs every task in this process.")(wrapper)
+             f"{default_workers()} here); 1 runs every task in this process, on one core.")(wrapper)
     return wrapper
 
 

@@ -398,7 +398,7 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
     from geosim.prepare.reproject import warp_threads
 
     src, dst = Path(src), Path(dst)
-    # decode the compressed tile blocks (image and mask) on every core of this worker; the
+    # decode the compressed tile blocks (image and mask) on the task's threads; the
     # internal 1-bit mask is read as 0/1, without GDAL's pass scaling it to 0/255 (only
     # "non-zero = valid" is used): 0.026 → 0.016 s CPU for a 5000² mask. Both are decoded
     # into this thread's buffers of the previous tile (geosim.scratch: no new memory to

@@ -53,8 +53,9 @@ WARP_MEM_LIMIT_MB = 256
 
 def warp_threads() -> int:
     """Threads for one GDAL warp or block decode: the running task's budget
-    (:func:`geosim.engine.task_threads`: 1 on a Dask worker, every core in this process,
-    ``GEOSIM_THREADS`` when set)."""
+    (:func:`geosim.engine.task_threads`: 1 in a task on any engine and in the command's
+    own work under ``--workers 1``, every core in a library call, ``GEOSIM_THREADS`` when
+    set)."""
     from geosim.engine import task_threads
 
     return task_threads()
