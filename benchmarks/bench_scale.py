@@ -34,6 +34,7 @@ Usage::
     python benchmarks/bench_scale.py --workers 1                  # one process only
     python benchmarks/bench_scale.py --workers 1t2,1,2            # also in-process on 2 threads
     python benchmarks/bench_scale.py --steps grid,footprints,align  # only the first steps
+    python benchmarks/bench_scale.py --workers 1,2 --repeat 3     # 1, 2, 1, 2, 1, 2: median
 
 ``1`` runs in this process on one core, like one single-threaded worker without Dask: the
 baseline of pure multi-process scaling. ``1tK`` runs in this process with K threads per task
@@ -450,7 +451,8 @@ def _same_outputs(a: Path, b: Path) -> bool:
 
 def run(size: int, tile_px: int, workers: list[str], keep: bool,
         site_cache: Path | None = None, gdalwarp: bool = True,
-        steps: tuple[str, ...] = STEPS, ceiling_s: float | None = 2.5) -> dict:
+        steps: tuple[str, ...] = STEPS, ceiling_s: float | None = 2.5,
+        repeats: int = 1) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="geosim-scale-"))
     try:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -469,6 +471,16 @@ def run(size: int, tile_px: int, workers: list[str], keep: bool,
         rows: list[dict] = []
         for w in workers:
             rows += run_steps(site_file, tmp / f"run_w{w}", w, size, tile_px, steps)
+        # further rounds of every setting, in the same order (1, 2, 1, 2, ...): the speed-up
+        # per round and its median, since one pair of runs moves by ±25 % on a small VM;
+        # their run folders are removed after each round (1.8 GB of tiles each at 20000 px)
+        later: list[dict] = []
+        for r in range(1, repeats):
+            for w in workers:
+                again = tmp / f"run_w{w}_r{r}"
+                later += [{**row, "round": r}
+                          for row in run_steps(site_file, again, w, size, tile_px, steps)]
+                shutil.rmtree(again, ignore_errors=True)
         out = tmp / f"run_w{workers[0]}"
         grid = json.loads((out / "grid" / "grid.json").read_text())
         from geosim.config import load_site
@@ -481,6 +493,9 @@ def run(size: int, tile_px: int, workers: list[str], keep: bool,
         same = (all(_same_outputs(out, tmp / f"run_w{w}") for w in workers[1:])
                 if len(workers) > 1 and n_tiles else None)
         doc = summarise(rows, gw, size, tile_px, n_tiles, imagery, make_s, workers, same)
+        if later:
+            doc["later_rounds"] = later
+            doc["speedup_rounds"] = speedup_rounds(rows, later, workers)
         doc["site_reused_from_cache"] = reused
         doc["machine"]["lscpu"] = machine_ceiling.lscpu()
         if ceiling is not None:
@@ -550,6 +565,22 @@ def summarise(rows: list[dict], gw: dict, size: int, tile_px: int, n_tiles: int,
     return doc
 
 
+def speedup_rounds(first: list[dict], later: list[dict], workers: list[str]) -> dict:
+    """Per step: the speed-up of the last worker setting over the first in every round
+    (wall time of the same round's runs), and their median and range."""
+    w1, wn = workers[0], workers[-1]
+    rows = [{**r, "round": 0} for r in first] + later
+    by = {(r["round"], r["workers"], r["step"]): r["seconds"] for r in rows}
+    out: dict = {"of": f"{wn} workers vs {w1}, each round's own pair"}
+    for step in dict.fromkeys(r["step"] for r in rows):
+        ratios = [round(by[(k, w1, step)] / by[(k, wn, step)], 2)
+                  for k in sorted({r["round"] for r in rows})
+                  if (k, w1, step) in by and (k, wn, step) in by]
+        out[step] = {"per_round": ratios, "median": round(float(np.median(ratios)), 2),
+                     "min": min(ratios), "max": max(ratios)}
+    return out
+
+
 def against_ceiling(doc: dict, ceiling: dict) -> dict:
     """Each step's speed-up beside the machine's ceiling for the workload it is shaped
     like (``machine_ceiling.STEP_SHAPE``): the wall-time ceiling measured in this run and
@@ -608,6 +639,12 @@ def markdown(doc: dict) -> str:
                                     f"{r['ceiling_corun']}× from the co-run repetitions)")
                                  for s, r in doc["speedup_vs_ceiling"].items() if "speedup" in r)
                      + ".")
+    if doc.get("speedup_rounds"):
+        rounds = doc["speedup_rounds"]
+        lines.append(f"Speed-up per round ({rounds['of']}): "
+                     + ", ".join(f"{s} median {r['median']}× "
+                                 f"({', '.join(map(str, r['per_round']))})"
+                                 for s, r in rounds.items() if s != "of") + ".")
     if "seconds" in gw and doc.get("prepare_vs_gdalwarp"):
         lines.append(f"gdalwarp, the same reprojection of the same flights (all CPUs): "
                      f"{gw['seconds']} s ({3 * doc['flight_px'] ** 2 / 1e6 / gw['seconds']:.2f}"
@@ -645,6 +682,9 @@ def main() -> None:
                     help="skip the machine-ceiling probe (≈ 40 s before the steps)")
     ap.add_argument("--ceiling-seconds", type=float, default=2.5,
                     help="wall seconds per phase of the ceiling probe (default 2.5)")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="rounds of every worker setting, alternated (default 1): the JSON "
+                         "gets the speed-up per round and its median (speedup_rounds)")
     ap.add_argument("--child")
     ap.add_argument("--site")
     ap.add_argument("--run")
@@ -659,8 +699,11 @@ def main() -> None:
     steps = tuple(s.strip() for s in args.steps.split(","))
     if not set(steps) <= set(STEPS):
         ap.error(f"--steps: choose among {', '.join(STEPS)}")
+    if args.repeat < 1:
+        ap.error("--repeat: give a whole number ≥ 1")
     doc = run(args.size, args.tile_px, workers, args.keep, args.site_cache,
-              not args.no_gdalwarp, steps, None if args.no_ceiling else args.ceiling_seconds)
+              not args.no_gdalwarp, steps, None if args.no_ceiling else args.ceiling_seconds,
+              args.repeat)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(markdown(doc))
