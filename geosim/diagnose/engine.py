@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from geosim.diagnose import locate
+from geosim.diagnose.context import FitWindow
 from geosim.diagnose.effects import BLUR_EFFECTS
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.spectra import block_origins, spectral_error
@@ -103,14 +104,12 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     fit_mask = inp.valid & ~locate.regions_mask(labels0, regions0, kind=None)
     if q_hi is None:
         q_hi = max(2.5, 1.3 * q_base)
-    q_starts = (float(np.clip(q_base, q_lo, q_hi)), 1.5)
-    setup, sel = select_with_q_room(inp, model, fit_mask, q_lo, q_hi, blur_candidates, q_starts,
-                                    jpeg_linearised(inp, model, fit_mask))
+    window = FitWindow(mask=fit_mask, q_lo=q_lo, q_hi=q_hi, candidates=blur_candidates,
+                       q_starts=(float(np.clip(q_base, q_lo, q_hi)), 1.5))
+    setup, sel = select_with_q_room(inp, model, window, jpeg_linearised(inp, model, fit_mask))
     model = adopt(model, sel)
-    model, setup, sel = joint_jpeg_blur(inp, model, setup, sel, fit_mask, q_lo, q_hi,
-                                        blur_candidates, q_starts)
-    model, setup, sel = robust_then_exact(inp, model, setup, sel, fit_mask, q_lo, q_hi,
-                                          blur_candidates, q_starts)
+    model, setup, sel = joint_jpeg_blur(inp, model, setup, sel, window)
+    model, setup, sel = robust_then_exact(inp, model, setup, sel, window)
     model = fit_scene_radiometry(inp, model, fit_mask)
     if model.compression is None:
         # second look, against the refined model: the baseline's blur misfit can hide the
@@ -118,8 +117,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         model = model.without(compression=find_compression(
             inp, reg, model_img=model.deterministic(simulate)))
     model = estimate_scene_noise(inp, model, setup, fit_mask)
-    model, setup, sel = dithered_refit(inp, model, setup, sel, fit_mask, q_lo, q_hi,
-                                       blur_candidates, q_starts)
+    model, setup, sel = dithered_refit(inp, model, setup, sel, window)
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
     det = model.deterministic(simulate)
@@ -143,9 +141,9 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
 
     noise_seed = int(rng.integers(0, 2**31 - 1))
     model, withdrawn_noise = noise_helps(inp, model, se_of, noise_seed)
-    model = aliasing_test(inp, model, sel, setup, se_of, noise_seed, blur_candidates,
+    model = aliasing_test(inp, model, sel, setup, se_of, noise_seed, window.candidates,
                           ev_origins)
-    model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, q_lo)
+    model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     found = model
     all_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=inp.valid)
 

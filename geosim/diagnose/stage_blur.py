@@ -5,10 +5,11 @@ cross-validation folds (:class:`SpectralSetup`), forward blur selection with roo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from geosim.diagnose.context import FitWindow
 from geosim.diagnose.exact_family import EXACT_FAMILIES, exact_duel
 from geosim.diagnose.fit import SpectralData, build_spectral_data
 from geosim.diagnose.jpeg_transfer import JpegTransfer
@@ -63,34 +64,38 @@ def quadrant_folds(origins: list[tuple[int, int]], block_px: int, shape: tuple[i
     return [g for g in groups if len(g) >= 2]
 
 
-def select_with_q_room(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
-                       q_hi: float, candidates: tuple[str, ...], q_starts: tuple[float, float],
+def select_with_q_room(inp: Inputs, model: ForwardModel, window: FitWindow,
                        jpeg: JpegTransfer | None = None) -> tuple[SpectralSetup, BlurSelection]:
     """Q grid, Welch blocks and forward blur selection, with room for Q.
 
-    The Q grid ends at ``q_hi`` (from the LV baseline, which noise and JPEG pull far from
-    the true Q). When Q alone (the null model) or Q with the chosen blur is pinned at that
-    end, the scene is blurrier than the grid allows and an isotropic blur stands in for
-    the missing optics; the grid is then extended (× :data:`Q_EXTEND`, up to
-    :data:`Q_MAX`) and the selection redone. The grid is not widened otherwise: a wide
-    grid lets Q absorb real isotropic blurs (tried and reverted before).
+    The Q grid ends at ``window.q_hi`` (from the LV baseline, which noise and JPEG pull
+    far from the true Q). When Q alone (the null model) or Q with the chosen blur is
+    pinned at that end, the scene is blurrier than the grid allows and an isotropic blur
+    stands in for the missing optics; the grid is then extended (× :data:`Q_EXTEND`, up to
+    :data:`Q_MAX`) and the selection redone (the caller's ``window`` is unchanged). The
+    grid is not widened otherwise: a wide grid lets Q absorb real isotropic blurs (tried
+    and reverted before).
 
+    ``window``: the fit mask, Q range, candidate effects and Q starting values.
     ``jpeg``: under compression, the JPEG's transfer linearised around the blurred model
     (the simulations are filtered by it instead of being JPEG'd sharp)."""
     while True:
-        setup = spectral_setup(inp, model, fit_mask, q_lo, q_hi, jpeg)
-        sel = select_blur(setup.full, setup.folds, candidates=candidates, q_starts=q_starts)
+        setup = spectral_setup(inp, model, window, jpeg)
+        sel = select_blur(setup.full, setup.folds, candidates=window.candidates,
+                          q_starts=window.q_starts)
         top = setup.q_grid[-1] / 1.01
-        if q_hi >= Q_MAX or not (sel.null.q >= top or sel.final.q >= top):
+        if window.q_hi >= Q_MAX or not (sel.null.q >= top or sel.final.q >= top):
             return setup, sel
-        q_hi = min(Q_MAX, Q_EXTEND * q_hi)
+        window = replace(window, q_hi=min(Q_MAX, Q_EXTEND * window.q_hi))
 
 
-def spectral_setup(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo: float,
-                   q_hi: float, jpeg: JpegTransfer | None = None) -> SpectralSetup:
-    """Exact simulations on a Q grid, screened Welch blocks, CV folds (under JPEG, with
-    ``jpeg`` given: the uncompressed simulations filtered by its linearised transfer)."""
+def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
+                   jpeg: JpegTransfer | None = None) -> SpectralSetup:
+    """Exact simulations on the Q grid from ``window.q_lo`` to ``window.q_hi``, screened
+    Welch blocks inside ``window.mask``, CV folds (under JPEG, with ``jpeg`` given: the
+    uncompressed simulations filtered by its linearised transfer)."""
     rows, cols = inp.valid.shape
+    q_lo, q_hi = window.q_lo, window.q_hi
     n_q = int(np.ceil(np.log(q_hi / q_lo) / np.log(Q_GRID_STEP))) + 1
     q_grid = np.exp(np.linspace(np.log(q_lo), np.log(q_hi), n_q))
     if jpeg is not None and model.compression is not None:
@@ -101,7 +106,7 @@ def spectral_setup(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray, q_lo:
     base_g = grey(model.sim_at(inp.simulate, inp.q_base))
     block_px = inp.block_px
     while True:  # smaller Welch blocks when changes leave too few whole blocks
-        origins = block_origins((rows, cols), block_px=block_px, valid=fit_mask)
+        origins = block_origins((rows, cols), block_px=block_px, valid=window.mask)
         origins, rho = screen_blocks(base_g, inp.grey, origins, block_px)
         if len(origins) >= MIN_BLOCKS or block_px <= 16:
             break

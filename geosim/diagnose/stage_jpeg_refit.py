@@ -1,12 +1,13 @@
 """JPEG quality and blur fitted together: the quality re-estimated on the blurred model
 to a fixed point (:func:`joint_jpeg_blur`), the check that an isotropic blur is not the
 quality's uncertainty (:func:`jpeg_robust_isotropic`), and the refit with the claimed
-noise dithering the quantisation (:func:`dithered_refit`)."""
+noise dithering the quantisation (:func:`dithered_refit`). Each refits within the blur
+fit's :class:`~geosim.diagnose.context.FitWindow` (fit mask, Q range, candidate effects,
+Q starting values)."""
 
 from __future__ import annotations
 
-import numpy as np
-
+from geosim.diagnose.context import FitWindow
 from geosim.diagnose.model import CompressionFit, ForwardModel
 from geosim.diagnose.noise import noise_dither
 from geosim.diagnose.select import BlurSelection
@@ -48,9 +49,7 @@ DITHER_SEED = 12345
 
 
 def joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
-                    fit_mask: np.ndarray, q_lo: float, q_hi: float,
-                    candidates: tuple[str, ...], q_starts: tuple[float, float]
-                    ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+                    window: FitWindow) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
     """JPEG quality and blur, fitted to a common fixed point.
 
     The quality is found by matching block-edge step energy, which depends on how sharp
@@ -78,14 +77,11 @@ def joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel:
         if k > 0 and (abs(qual - c.quality) < JPEG_QUALITY_TOL or qual in seen):
             break
         seen.add(qual)
-        model, setup, sel = reselect_at_quality(inp, model, qual, fit_mask, q_lo, q_hi,
-                                                candidates, q_starts)
+        model, setup, sel = reselect_at_quality(inp, model, qual, window)
     return model, setup, sel
 
 
-def reselect_at_quality(inp: Inputs, model: ForwardModel, quality: int, fit_mask: np.ndarray,
-                        q_lo: float, q_hi: float, candidates: tuple[str, ...],
-                        q_starts: tuple[float, float]
+def reselect_at_quality(inp: Inputs, model: ForwardModel, quality: int, window: FitWindow
                         ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
     """The blur selection redone from the baseline Q with the JPEG at ``quality`` (same
     block offset and test), the JPEG's transfer linearised around ``model`` (its Q and
@@ -93,20 +89,18 @@ def reselect_at_quality(inp: Inputs, model: ForwardModel, quality: int, fit_mask
     c = model.compression
     assert c is not None
     comp = CompressionFit(quality, c.offset_px, c.test)
-    jpeg = jpeg_linearised(inp, model.without(compression=comp), fit_mask)
+    jpeg = jpeg_linearised(inp, model.without(compression=comp), window.mask)
     start = model.without(compression=comp, q=inp.q_base, blur={})
-    setup, sel = select_with_q_room(inp, start, fit_mask, q_lo, q_hi, candidates, q_starts, jpeg)
+    setup, sel = select_with_q_room(inp, start, window, jpeg)
     return adopt(start, sel), setup, sel
 
 
 def robust_then_exact(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
-                      sel: BlurSelection, fit_mask: np.ndarray, q_lo: float, q_hi: float,
-                      candidates: tuple[str, ...], q_starts: tuple[float, float]
+                      sel: BlurSelection, window: FitWindow
                       ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
     """The JPEG-robust isotropic check, then the exact window-aware family decisions; the
     model adopts the exact decision's blur where it changed the fast fit's."""
-    model, setup, sel = jpeg_robust_isotropic(inp, model, setup, sel, fit_mask, q_lo, q_hi,
-                                              candidates, q_starts)
+    model, setup, sel = jpeg_robust_isotropic(inp, model, setup, sel, window)
     fast_final = sel.final
     sel = exact_anisotropic(inp, setup, sel)
     if sel.final is not fast_final:
@@ -115,8 +109,7 @@ def robust_then_exact(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
 
 
 def jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
-                          sel: BlurSelection, fit_mask: np.ndarray, q_lo: float, q_hi: float,
-                          candidates: tuple[str, ...], q_starts: tuple[float, float]
+                          sel: BlurSelection, window: FitWindow
                           ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
     """Under JPEG, an isotropic blur must not be explainable by the quality's uncertainty.
 
@@ -127,17 +120,14 @@ def jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetup
     if c is None or not any(n in model.blur for n in ISOTROPIC):
         return model, setup, sel
     q_low = jpeg_quality_for_scale(JPEG_STEP_MARGIN * jpeg_step_scale(c.quality))
-    alt, alt_setup, alt_sel = reselect_at_quality(inp, model, q_low, fit_mask, q_lo, q_hi,
-                                                  candidates, q_starts)
+    alt, alt_setup, alt_sel = reselect_at_quality(inp, model, q_low, window)
     if any(n in alt_sel.final.effects for n in ISOTROPIC):
         return model, setup, sel
     return alt, alt_setup, alt_sel
 
 
 def dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
-                   fit_mask: np.ndarray, q_lo: float, q_hi: float,
-                   candidates: tuple[str, ...], q_starts: tuple[float, float]
-                   ) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
+                   window: FitWindow) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
     """Under JPEG with noise claimed: quality and blur refitted with the noise in the model.
 
     The scene's JPEG encoded a noisy product; noise dithers the quantisation, so the JPEG
@@ -154,14 +144,12 @@ def dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: 
     if model.compression is None or model.noise is None or not model.noise.claimed:
         return model, setup, sel
     start = model.without(radiometry=None)
-    m2, setup2, sel2 = joint_jpeg_blur(inp, start, setup, sel, fit_mask, q_lo, q_hi,
-                                       candidates, q_starts)
+    m2, setup2, sel2 = joint_jpeg_blur(inp, start, setup, sel, window)
     if sel2 is sel:  # quality at the null end: nothing refitted
         return model, setup, sel
-    m2, setup2, sel2 = robust_then_exact(inp, m2, setup2, sel2, fit_mask, q_lo, q_hi,
-                                         candidates, q_starts)
-    m2 = estimate_scene_noise(inp, fit_scene_radiometry(inp, m2.without(seam=None), fit_mask),
-                              setup2, fit_mask)
+    m2, setup2, sel2 = robust_then_exact(inp, m2, setup2, sel2, window)
+    m2 = estimate_scene_noise(inp, fit_scene_radiometry(inp, m2.without(seam=None), window.mask),
+                              setup2, window.mask)
     if m2.noise is None or not m2.noise.claimed:
         # the noise does not survive a model that accounts for it (a misfit read as noise
         # under the first quality and blur): not claimed, first fit kept
