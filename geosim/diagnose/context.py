@@ -1,7 +1,9 @@
 """The contexts :func:`~geosim.diagnose.engine.diagnose_arrays` hands to its stages.
 
-Where and over what the blur is fitted travels through the diagnosis as one record
-(:class:`FitWindow`), built once by the orchestrator and read-only.
+Three groups of values travel together through the diagnosis: where and over what the
+blur is fitted (:class:`FitWindow`), how a refined simulation is judged against the real
+scene (:class:`EvalContext`) and the scene changes the final pass found
+(:class:`ChangedRegions`). Each is built once by the orchestrator and is read-only.
 """
 
 from __future__ import annotations
@@ -10,7 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FitWindow"]
+from geosim.diagnose import locate
+from geosim.diagnose.spectra import spectral_error
+from geosim.diagnose.stage_inputs import greys
+
+__all__ = ["FitWindow", "EvalContext", "ChangedRegions"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -38,3 +44,65 @@ class FitWindow:
     q_hi: float
     candidates: tuple[str, ...]
     q_starts: tuple[float, float]
+
+
+@dataclass(frozen=True, eq=False)
+class EvalContext:
+    """How a refined simulation is judged against the real scene after the fit.
+
+    Attributes
+    ----------
+    mask : numpy.ndarray
+        Bool (rows, cols) on the 0.5 m grid: the evaluation pixels, where both images show
+        the same scene (the final pass's inner mask outside every changed region); RMSEs
+        are taken over it.
+    origins : list of tuple of int
+        (row, col) origins, pixels, of the Welch blocks of the spectral error: the whole
+        blocks inside ``mask`` (the fit's blocks when fewer than 4 fit).
+    block_px : int
+        Side of the Welch blocks, pixels.
+    real_grey : numpy.ndarray
+        Grey level (luma) of the real scene, (rows, cols), DN.
+    noise_seed : int
+        Seed of the refined simulation's noise realisation (realisation k of a noisy
+        model uses ``noise_seed + k``).
+    """
+
+    mask: np.ndarray
+    origins: list[tuple[int, int]]
+    block_px: int
+    real_grey: np.ndarray
+    noise_seed: int
+
+    def spectral_error(self, img: np.ndarray | list[np.ndarray]) -> float:
+        """Spectral error of ``img`` against the real scene on :attr:`origins`
+        (dimensionless); a list of images (noise realisations) by their mean Welch power.
+
+        Parameters
+        ----------
+        img : numpy.ndarray or list of numpy.ndarray
+            Bands-first or grey image(s) on the 0.5 m grid, DN.
+        """
+        return spectral_error(greys(img), self.real_grey, block_px=self.block_px,
+                              origins=self.origins)
+
+
+@dataclass(frozen=True, eq=False)
+class ChangedRegions:
+    """The scene changes of the final pass (against the refined model).
+
+    Attributes
+    ----------
+    regions : list of geosim.diagnose.locate.Region
+        Regions of significant residual energy, each of kind ``scene_change`` or
+        ``global``.
+    labels : numpy.ndarray
+        Int (rows, cols) label image of ``regions`` on the 0.5 m grid.
+    inner : numpy.ndarray
+        Bool (rows, cols): the valid mask eroded by 5 × 5 pixels, where the residual
+        energy was measured.
+    """
+
+    regions: list[locate.Region]
+    labels: np.ndarray
+    inner: np.ndarray

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from geosim.diagnose import locate
-from geosim.diagnose.context import FitWindow
+from geosim.diagnose.context import ChangedRegions, EvalContext, FitWindow
 from geosim.diagnose.effects import BLUR_EFFECTS
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.spectra import block_origins, spectral_error
@@ -130,19 +130,15 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     regions, labels, energy, inner = changed_regions(
         inp, grey(det), ratio=6.0, floor_dn2=max(MIN_REGION_DN2, 0.447 * noise_var),
         affine=False, extra_dn2=jpeg_dn2)
+    change = ChangedRegions(regions=regions, labels=labels, inner=inner)
     eval_mask = inner & ~locate.regions_mask(labels, regions, kind=None)
     ev_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=eval_mask)
     if len(ev_origins) < 4:
         ev_origins = setup.origins
-
-    def se_of(img: np.ndarray | list[np.ndarray]) -> float:
-        return spectral_error(greys(img), inp.grey, block_px=setup.block_px,
-                              origins=ev_origins)
-
-    noise_seed = int(rng.integers(0, 2**31 - 1))
-    model, withdrawn_noise = noise_helps(inp, model, se_of, noise_seed)
-    model = aliasing_test(inp, model, sel, setup, se_of, noise_seed, window.candidates,
-                          ev_origins)
+    ev = EvalContext(mask=eval_mask, origins=ev_origins, block_px=setup.block_px,
+                     real_grey=inp.grey, noise_seed=int(rng.integers(0, 2**31 - 1)))
+    model, withdrawn_noise = noise_helps(inp, model, ev)
+    model = aliasing_test(inp, model, sel, setup, ev, window.candidates)
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     found = model
     all_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=inp.valid)
@@ -151,17 +147,17 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         return spectral_error(greys(img), inp.grey, block_px=setup.block_px,
                               origins=all_origins)
 
-    model, withdrawn_iso = jpeg_delivered_isotropic(inp, model, sel, setup, se_of, noise_seed)
-    model, withdrawn = never_worse(inp, model, sel, setup, se_of, noise_seed,
+    model, withdrawn_iso = jpeg_delivered_isotropic(inp, model, sel, setup, ev)
+    model, withdrawn = never_worse(inp, model, sel, setup, ev,
                                    se_whole if len(all_origins) >= 4 else None)
     withdrawn = withdrawn_noise + withdrawn_floor + withdrawn_iso + withdrawn
-    refined = model.delivered(simulate, np.random.default_rng(noise_seed),
+    refined = model.delivered(simulate, np.random.default_rng(ev.noise_seed),
                               quantized=inp.quantized)
     claims = claim_effects(inp, model.without(registration=reg, compression=found.compression,
                                               seam=found.seam, radiometry=found.radiometry),
-                           sel, regions, labels, inner, eval_mask, se_of, noise_seed)
-    summary = make_summary(inp, model, sel, setup, claims, eval_mask, se_of, refined, withdrawn)
+                           sel, change, ev)
+    summary = make_summary(inp, model, sel, setup, claims, ev, refined, withdrawn)
     maps = mismatch_maps(inp, model, energy)
-    plots = plot_data(inp, model, sel, setup, ev_origins, refined, summary)
+    plots = plot_data(inp, model, sel, setup, ev, refined, summary)
     return Diagnosis(summary=summary, real=inp.real, baseline=inp.base, refined=refined,
                      valid=inp.valid, maps=maps, regions=regions, labels=labels, plots=plots)

@@ -3,11 +3,11 @@ does not see) brings the delivered spectrum clearly closer (:func:`aliasing_test
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 
+from geosim.diagnose.context import EvalContext
 from geosim.diagnose.fit import evaluate_chi2, fit_transfer
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import (
@@ -35,9 +35,7 @@ ALIASING_SPECTRAL_GAIN_SPLIT = 0.9
 
 
 def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
-                  se_of: Callable[[np.ndarray], float], rng_seed: int,
-                  candidates: tuple[str, ...], ev_origins: list[tuple[int, int]]
-                  ) -> ForwardModel:
+                  ev: EvalContext, candidates: tuple[str, ...]) -> ForwardModel:
     """Resampling leaves two traces: a roll-off of the coherent transfer, which Q and the
     isotropic blurs imitate (so forward selection on the transfer often takes those
     instead), and power the transfer fit does not see: aliasing and the spectral images
@@ -50,6 +48,10 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
        lies), its native pitch is fitted on the power spectrum itself, by split halves:
        the pitch chosen on the left half of the blocks must improve the right half's
        spectral error by the same margin, and vice versa.
+
+    Spectral errors on ``ev``'s blocks (route 2: its left and right halves), noise
+    realisations from ``ev.noise_seed``; ``candidates``: the effects the fit may add
+    (nothing is tested unless ``resampling`` is among them).
     """
     name = "resampling"
     if name not in candidates or name in model.blur:
@@ -58,7 +60,7 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     def delivered(m: ForwardModel) -> list[np.ndarray]:
         # with noise claimed, the expected spectrum (mean of the realisations): one
         # realisation's scatter (±0.08 on small JPEG scenes) can pass for aliased power
-        return realisations(inp, m, rng_seed)
+        return realisations(inp, m, ev.noise_seed)
 
     names = [*model.blur, name]
     fit = fit_transfer(setup.full, names, q_starts=(model.q, inp.q_base))
@@ -72,8 +74,8 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
             cv0 = cv_chi2(setup.folds, list(model.blur), cur)
             gain = 1.0 - cv_chi2(setup.folds, names, fit) / max(cv0, 1e-300)
         with_r = model.without(q=fit.q, blur=dict(fit.effects))
-        if gain >= 0 and se_of(delivered(with_r)) <= ALIASING_SPECTRAL_GAIN * \
-                se_of(delivered(model)):
+        if gain >= 0 and ev.spectral_error(delivered(with_r)) <= ALIASING_SPECTRAL_GAIN * \
+                ev.spectral_error(delivered(model)):
             n_values = 2 * setup.full.t_real.size
             sel.steps.append(AcceptedEffect(name, delta_bic(prev, fit, n_values), gain, [], fit))
             sel.cv_gain[name] = gain
@@ -81,8 +83,8 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
             return with_r
     # route 2: the native pitch from the power spectrum, validated on split halves
     cols = inp.valid.shape[1]
-    halves = [[o for o in ev_origins if o[1] + setup.block_px / 2 < cols / 2],
-              [o for o in ev_origins if o[1] + setup.block_px / 2 >= cols / 2]]
+    halves = [[o for o in ev.origins if o[1] + setup.block_px / 2 < cols / 2],
+              [o for o in ev.origins if o[1] + setup.block_px / 2 >= cols / 2]]
     if min(len(h) for h in halves) < 2:
         return model
 

@@ -8,6 +8,7 @@ import numpy as np
 from scipy import ndimage
 
 from geosim.diagnose import locate
+from geosim.diagnose.context import ChangedRegions
 from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_radiometry import affine_residual
@@ -41,9 +42,12 @@ def changed_regions(inp: Inputs, model_grey: np.ndarray, *, ratio: float,
 
 
 def scene_change_claim(inp: Inputs, model: ForwardModel, sc: list[locate.Region],
-                       regions: list[locate.Region], labels: np.ndarray, inner: np.ndarray
-                       ) -> Claim:
-    """Evidence: the region pixels have a larger residual variance than the rest."""
+                       change: ChangedRegions) -> Claim:
+    """Evidence: the region pixels have a larger residual variance than the rest.
+
+    ``sc``: the ``scene_change`` regions among ``change.regions``; the variances are taken
+    inside ``change.inner``."""
+    regions, labels, inner = change.regions, change.labels, change.inner
     e_final = grey(inp.real - model.deterministic(inp.simulate))
     area = sum(g.area_px for g in sc) * inp.gsd_m**2
     in_sc = locate.regions_mask(labels, regions, dilate_px=0) & inner

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
-from geosim.diagnose import locate
+from geosim.diagnose.context import ChangedRegions, EvalContext
 from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.select import BlurSelection
 from geosim.diagnose.stage_change import scene_change_claim
@@ -17,11 +15,14 @@ __all__ = ["claim_effects"]
 
 
 def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
-                  regions: list[locate.Region], labels: np.ndarray, inner: np.ndarray,
-                  eval_mask: np.ndarray, se_of: Callable[[np.ndarray], float], noise_seed: int
-                  ) -> list[Claim]:
-    """The claimed effects in order, each with the fit after adding it (cumulative)."""
+                  change: ChangedRegions, ev: EvalContext) -> list[Claim]:
+    """The claimed effects in order, each with the fit after adding it (cumulative).
+
+    ``change``: the final pass's changed regions (a ``scene_change`` claim from its
+    ``scene_change`` regions); ``ev``: each claim's RMSE over ``ev.mask`` and spectral
+    error of the realisation of ``ev.noise_seed`` after adding it."""
     sim = inp.simulate
+    eval_mask = ev.mask
     reg = model.registration
     empty = ForwardModel(q=inp.q_base, blur={}, registration=reg)
     out: list[tuple[Claim, ForwardModel]] = []
@@ -72,13 +73,13 @@ def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         out.append((Claim("sensor_noise", {"gain_dn": n.gain_dn, "read_var_dn2": n.read_var_dn2},
                           {"gain_dn": n.gain_sigma, "read_var_dn2": n.read_sigma},
                           n.delta_bic), cur))
-    sc = [g for g in regions if g.kind == "scene_change"]
+    sc = [g for g in change.regions if g.kind == "scene_change"]
     if sc:
-        out.append((scene_change_claim(inp, model, sc, regions, labels, inner), cur))
+        out.append((scene_change_claim(inp, model, sc, change), cur))
     claims = []
     for c, m in out:
         c.rmse_after = rmse(m.deterministic(sim), inp.real, eval_mask)
-        c.spectral_error_after = se_of(m.delivered(sim, np.random.default_rng(noise_seed),
-                                                   quantized=inp.quantized))
+        c.spectral_error_after = ev.spectral_error(
+            m.delivered(sim, np.random.default_rng(ev.noise_seed), quantized=inp.quantized))
         claims.append(c)
     return claims

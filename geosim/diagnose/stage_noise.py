@@ -6,10 +6,10 @@ expected spectra together (:func:`noise_helps`)."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
+from geosim.diagnose.context import EvalContext
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.noise import estimate_noise
 from geosim.diagnose.stage_blur import SpectralSetup
@@ -62,16 +62,17 @@ def realisation_scatter(img: list[np.ndarray], se_of: Callable[[np.ndarray], flo
     return NOISE_SCATTER_TOLERANCE * float(np.std([se_of(i) for i in img], ddof=1))
 
 
-def noise_helps(inp: Inputs, model: ForwardModel, se_of: Callable[[Any], float],
-                rng_seed: int) -> tuple[ForwardModel, list[dict[str, str]]]:
+def noise_helps(inp: Inputs, model: ForwardModel, ev: EvalContext
+                ) -> tuple[ForwardModel, list[dict[str, str]]]:
     """Noise is kept only where adding it brings the expected spectra together: its
-    expected spectral error at most NOISE_SPECTRAL_GAIN × the model's without it (plus
-    the realisations' scatter)."""
+    expected spectral error (on ``ev``'s blocks, realisations from ``ev.noise_seed``) at
+    most NOISE_SPECTRAL_GAIN × the model's without it (plus the realisations' scatter)."""
     if model.noise is None or not model.noise.claimed:
         return model, []
+    se_of = ev.spectral_error
     quiet = model.without(noise=None)
-    noisy = realisations(inp, model, rng_seed)
-    if se_of(noisy) <= NOISE_SPECTRAL_GAIN * se_of(realisations(inp, quiet, rng_seed)) \
+    noisy = realisations(inp, model, ev.noise_seed)
+    if se_of(noisy) <= NOISE_SPECTRAL_GAIN * se_of(realisations(inp, quiet, ev.noise_seed)) \
             + realisation_scatter(noisy, se_of):
         return model, []
     return quiet, [{"name": "sensor_noise",

@@ -4,12 +4,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from geosim.diagnose import locate
+from geosim.diagnose.context import EvalContext
 from geosim.diagnose.fit import fit_transfer
 from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.select import BlurSelection
@@ -36,10 +36,12 @@ def _ambiguity_note(claim: Claim) -> str:
 
 
 def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
-                 claims: list[Claim], eval_mask: np.ndarray, se_of: Callable[[np.ndarray], float],
-                 refined: np.ndarray, withdrawn: list[dict[str, str]]) -> dict[str, Any]:
+                 claims: list[Claim], ev: EvalContext, refined: np.ndarray,
+                 withdrawn: list[dict[str, str]]) -> dict[str, Any]:
     """The JSON-able summary written to ``diagnosis.json`` (baseline, effects, refined
-    fit, ambiguities, withdrawals, candidates, co-registration, noise, settings)."""
+    fit, ambiguities, withdrawals, candidates, co-registration, noise, settings); RMSEs
+    over ``ev.mask``, spectral errors on ``ev``'s blocks."""
+    eval_mask, se_of = ev.mask, ev.spectral_error
     base_rmse = rmse(inp.base, inp.real, eval_mask)
     base_se = se_of(np.round(inp.base) if inp.quantized else inp.base)
     ref_rmse = rmse(model.deterministic(inp.simulate), inp.real, eval_mask)
@@ -101,11 +103,13 @@ def mismatch_maps(inp: Inputs, model: ForwardModel, energy: np.ndarray) -> dict[
 
 
 def plot_data(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
-              ev_origins: list[tuple[int, int]], refined: np.ndarray, summary: dict[str, Any]
+              ev: EvalContext, refined: np.ndarray, summary: dict[str, Any]
               ) -> dict[str, Any]:
     """Plot data. Transfer functions on the fit's blocks, relative to the sharpest
     simulation; the models *as fitted*, i.e. times the broadband gain g of the spectral
-    fit (g < 1 holds haze contrast loss and coherence loss from unshared content)."""
+    fit (g < 1 holds haze contrast loss and coherence loss from unshared content). Power
+    spectra on the evaluation blocks (``ev.origins``)."""
+    ev_origins = ev.origins
     q_grid, bp, org = setup.q_grid, setup.block_px, setup.origins
     g_base = fit_transfer(setup.full, [], fix_q=float(np.clip(inp.q_base, q_grid[0],
                                                               q_grid[-1]))).gain

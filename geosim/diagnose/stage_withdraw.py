@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from geosim.diagnose.context import EvalContext
 from geosim.diagnose.fit import fit_transfer
 from geosim.diagnose.model import ForwardModel, Registration
 from geosim.diagnose.select import BlurSelection
@@ -55,8 +56,8 @@ def blur_at_q_floor(inp: Inputs, model: ForwardModel, sel: BlurSelection,
 
 
 def jpeg_delivered_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
-                             setup: SpectralSetup, se_of: Callable[[np.ndarray], float],
-                             rng_seed: int) -> tuple[ForwardModel, list[dict[str, str]]]:
+                             setup: SpectralSetup, ev: EvalContext
+                             ) -> tuple[ForwardModel, list[dict[str, str]]]:
     """Under JPEG, an isotropic blur must also help where the physics is in the right order.
 
     The transfer fit sees the JPEG through simulations compressed *before* any blur, an
@@ -65,13 +66,14 @@ def jpeg_delivered_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelectio
     (a detector of ≈ 1 px on the development half) takes up the difference. The delivered
     refined simulation compresses last, as a camera does; the blur is kept only if it brings
     that simulation's power spectrum clearly closer (:data:`JPEG_ISOTROPIC_SPECTRAL_GAIN`)
-    than the model without it (Q refitted)."""
+    than the model without it (Q refitted); spectral errors on ``ev``'s blocks, noise
+    realisations from ``ev.noise_seed``."""
     iso = [n for n in model.blur if n in ISOTROPIC]
     if model.compression is None or not iso:
         return model, []
 
     def se(m: ForwardModel) -> float:
-        return se_of(realisations(inp, m, rng_seed))
+        return ev.spectral_error(realisations(inp, m, ev.noise_seed))
 
     q, eff = refit_without(sel, setup, [n for n in model.blur if n not in ISOTROPIC],
                            inp.q_base)
@@ -83,15 +85,15 @@ def jpeg_delivered_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelectio
 
 
 def never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
-                se_of: Callable[[np.ndarray], float], rng_seed: int,
-                se_whole: Callable[[np.ndarray], float] | None = None
+                ev: EvalContext, se_whole: Callable[[np.ndarray], float] | None = None
                 ) -> tuple[ForwardModel, list[dict[str, str]]]:
     """Fall back to fewer effects until the delivered refined simulation fits at least as
     well as the baseline (spectral error): first without noise, then without the blur
     effects from the last chosen, finally the baseline Q alone.
 
-    "At least as well" holds on the blocks outside the changed regions (``se_of``) and,
-    when ``se_whole`` is given, also over the whole valid extent: the refined simulation
+    "At least as well" holds on the blocks outside the changed regions
+    (``ev.spectral_error``, the realisation of ``ev.noise_seed``) and, when ``se_whole``
+    is given, also over the whole valid extent: the refined simulation
     is delivered whole, changed areas included. This compares the realisation delivered,
     not the expected spectrum: at low Q the LV baseline, sharpened until it mimics the
     noise, sits at the floor where a realisation of the true model fits no better
@@ -99,6 +101,7 @@ def never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Spe
     baseline's 0.077), so noise there is withdrawn; judging the expected spectrum within
     the realisations' scatter did not bring those cases back and let one development case
     (c44) deliver a refined simulation worse than the baseline."""
+    se_of = ev.spectral_error
     base = np.round(inp.base) if inp.quantized else inp.base
     base_se = se_of(base)
     base_whole = se_whole(base) if se_whole is not None else 0.0
@@ -106,7 +109,7 @@ def never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Spe
 
     def ok(m: ForwardModel) -> bool:
         # the realisation delivered (what is compared with the real scene downstream)
-        img = m.delivered(inp.simulate, np.random.default_rng(rng_seed),
+        img = m.delivered(inp.simulate, np.random.default_rng(ev.noise_seed),
                           quantized=inp.quantized)
         return se_of(img) <= base_se and (se_whole is None or se_whole(img) <= base_whole)
 
