@@ -77,7 +77,7 @@ class InProcess:
             desc: str | None = None) -> list[R]:
         items = list(items)
         out = []
-        threads = in_process_threads()
+        threads = task_budget()
         keep_freed_heap()
         for item in tqdm(items, desc=desc, unit="task", disable=None, leave=False):
             with task_limits(threads):
@@ -173,16 +173,10 @@ def task_limits(threads: int) -> Iterator[None]:
         cv2.setNumThreads(cv2_threads)
 
 
-def in_process_threads() -> int:
-    """Threads of a task run in this process (``--workers 1``): one, like a task on a
-    single-threaded Dask worker (so ``--workers N`` means N cores whatever N is), or
-    ``GEOSIM_THREADS``."""
-    return _threads_from_env(1)
-
-
-def worker_threads() -> int:
-    """Threads of a task on a Dask worker: one (the worker process is the unit of
-    parallelism), or the worker's ``GEOSIM_THREADS``."""
+def task_budget() -> int:
+    """Threads a task gets on every engine, in this process (``--workers 1``) as on a Dask
+    worker: one, since the process is the unit of parallelism (so ``--workers N`` means
+    N cores whatever N is), or this process's ``GEOSIM_THREADS``."""
     return _threads_from_env(1)
 
 
@@ -193,7 +187,7 @@ def _run_task(fn: Callable[[T], R], item: T) -> tuple[str, R]:
     from geosim.errors import GeosimError
 
     try:
-        with task_limits(worker_threads()):
+        with task_limits(task_budget()):
             return get_worker().address, fn(item)
     except GeosimError as exc:
         # The message is the error; its cause or context (often a GDAL exception that does
@@ -483,7 +477,7 @@ def open_engine(workers: int | None = None, scheduler: str | None = None
     """Make the engine of ``--workers`` / ``--scheduler`` active; close it on exit.
 
     In-process (``--workers 1``), the command's own OpenCV calls between tasks also get
-    the tasks' budget (:func:`in_process_threads`), so that the whole command uses one
+    the tasks' budget (:func:`task_budget`), so that the whole command uses one
     core; GDAL's asks :func:`task_threads`, which knows the engine.
     """
     import cv2
@@ -491,7 +485,7 @@ def open_engine(workers: int | None = None, scheduler: str | None = None
     engine = make_engine(workers, scheduler)
     cv2_threads = cv2.getNumThreads()
     if isinstance(engine, InProcess):
-        cv2.setNumThreads(in_process_threads())
+        cv2.setNumThreads(task_budget())
     try:
         with using(engine):
             yield engine

@@ -23,7 +23,7 @@ the delivered spectrum; the refined simulation may not fit worse than the baseli
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -32,12 +32,12 @@ from geosim.diagnose import locate
 from geosim.diagnose.context import ChangedRegions, EvalContext, FitWindow
 from geosim.diagnose.effects import BLUR_EFFECTS
 from geosim.diagnose.model import ForwardModel
-from geosim.diagnose.spectra import block_origins, spectral_error
+from geosim.diagnose.spectra import block_origins
 from geosim.diagnose.stage_aliasing import aliasing_test
 from geosim.diagnose.stage_blur import adopt, select_with_q_room
 from geosim.diagnose.stage_change import MIN_REGION_DN2, changed_regions
 from geosim.diagnose.stage_claims import claim_effects
-from geosim.diagnose.stage_inputs import grey, greys, make_inputs
+from geosim.diagnose.stage_inputs import grey, make_inputs
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
 from geosim.diagnose.stage_jpeg_refit import dithered_refit, joint_jpeg_blur, robust_then_exact
 from geosim.diagnose.stage_noise import estimate_scene_noise, noise_helps
@@ -141,15 +141,12 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model = aliasing_test(inp, model, sel, setup, ev, window.candidates)
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     found = model
-    all_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=inp.valid)
-
-    def se_whole(img: np.ndarray | list[np.ndarray]) -> float:
-        return spectral_error(greys(img), inp.grey, block_px=setup.block_px,
-                              origins=all_origins)
-
+    # the same judgement over every valid block (the changed regions included)
+    whole = replace(ev, mask=inp.valid, origins=block_origins(
+        inp.valid.shape, block_px=setup.block_px, valid=inp.valid))
     model, withdrawn_iso = jpeg_delivered_isotropic(inp, model, sel, setup, ev)
     model, withdrawn = never_worse(inp, model, sel, setup, ev,
-                                   se_whole if len(all_origins) >= 4 else None)
+                                   whole.spectral_error if len(whole.origins) >= 4 else None)
     withdrawn = withdrawn_noise + withdrawn_floor + withdrawn_iso + withdrawn
     refined = model.delivered(simulate, np.random.default_rng(ev.noise_seed),
                               quantized=inp.quantized)
