@@ -1,15 +1,16 @@
-"""Benchmark: CPU per 5000 px tile of the tiles step (``write_tile``), before / after.
+"""Benchmark: CPU to write one 5000 px tile as the tiles step does (``write_tile``), before / after.
 
-A 5000 × 5000 RGB aligned raster with a mask (real Brazil pasture imagery mirrored out,
-synthetic texture without it) is written once; then ``geosim.prepare.tiles.write_tile``
-cuts the whole 5000² window into a tile (read the aligned raster, write the tile COG with
-its mask and overviews), in child processes that import either this tree or a baseline
-git revision (``git archive``), alternating round by round so both see the same load.
-The two trees' tiles are compared: decoded pixels, mask, georeference and tags equal,
-``LAYOUT=COG``; file sizes are reported.
+A 5000 × 5000 RGB raster (real Brazil pasture imagery mirrored out, synthetic texture
+without it) is written once with a full mask and once with a partial one (300 columns
+without data, a tile at a flight's edge); child processes that import either this tree or
+a baseline git revision (``git archive``) read it and time
+``geosim.prepare.tiles.write_tile`` writing it as a tile (the COG with its mask and
+overviews), alternating round by round so both see the same load. The two trees' tiles
+are compared: decoded pixels, mask, georeference and tags equal, ``LAYOUT=COG``, the same
+overview sizes; the largest difference between their overview pixels is reported.
 
-Usage: ``python benchmarks/bench_tile_write.py --baseline-rev main [--rounds 3]``;
-results to ``benchmarks/results/bench_tile_write.json``.
+Usage: ``python benchmarks/bench_tile_write.py --baseline-rev main [--rounds 3] [--out F]``;
+results to ``benchmarks/results/bench_tile_write.json`` or ``--out``.
 """
 
 from __future__ import annotations
@@ -41,18 +42,24 @@ import json, sys, time
 sys.path.insert(0, {src!r})
 import geosim
 assert geosim.__file__.startswith({src!r}), geosim.__file__
+from types import SimpleNamespace as NS
+import rasterio
 from affine import Affine
-from rasterio.windows import Window
-from geosim.prepare.tiles import TileSpec, write_tile
-t = Affine(*{transform!r})
-spec = TileSpec(0, 0, Window(0, 0, 5000, 5000), t)
+from geosim.prepare.tiles import write_tile
+with rasterio.open({aligned!r}) as ds:
+    img, valid = ds.read(), ds.dataset_mask() > 0
+    reader = NS(count=ds.count, dtype=ds.dtypes[0], crs=ds.crs, descriptions=ds.descriptions,
+                colorinterp=ds.colorinterp)
+task = NS(tile=NS(transform=Affine(*{transform!r})), tags={{"GEOSIM_TILE_ID": "r000_c000"}},
+          compression="deflate")
 c0 = time.process_time()
-write_tile({aligned!r}, {dst!r}, spec, tags={{"GEOSIM_TILE_ID": "r000_c000"}})
+write_tile(reader, task, {dst!r}, img, valid)
 print(json.dumps({{"cpu_s": time.process_time() - c0}}))
 """
 
 
 def child(src: Path, aligned: Path, dst: Path, transform: Affine) -> float:
+    """CPU seconds of ``write_tile`` in a child importing the geosim code at ``src``."""
     code = _CHILD.format(src=str(src), aligned=str(aligned), dst=str(dst),
                          transform=tuple(transform)[:6])
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
@@ -61,7 +68,8 @@ def child(src: Path, aligned: Path, dst: Path, transform: Affine) -> float:
     return json.loads(done.stdout.strip().splitlines()[-1])["cpu_s"]
 
 
-def same_tile(a: Path, b: Path) -> None:
+def same_tile(a: Path, b: Path) -> int:
+    """Check two tiles decode alike; return the largest overview pixel difference (DN)."""
     with rasterio.open(a) as x, rasterio.open(b) as y:
         assert x.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
         assert y.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
@@ -69,51 +77,67 @@ def same_tile(a: Path, b: Path) -> None:
         assert np.array_equal(x.read_masks(1), y.read_masks(1)), "masks differ"
         assert x.transform == y.transform and x.crs == y.crs, "georeference differs"
         assert x.tags() == y.tags(), "tags differ"
-        assert len(x.overviews(1)) == len(y.overviews(1)), "overview count differs"
+        assert x.overviews(1) == y.overviews(1), "overview sizes differ"
+        levels = len(x.overviews(1))
+    worst = 0
+    for i in range(levels):
+        with rasterio.open(a, overview_level=i) as x, rasterio.open(b, overview_level=i) as y:
+            assert np.array_equal(x.dataset_mask(), y.dataset_mask()), "overview masks differ"
+            worst = max(worst, int(np.abs(x.read().astype(int) - y.read().astype(int)).max()))
+    return worst
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--baseline-rev", default="main")
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     from geosim.io.raster import write_geotiff
 
     tile, source = make_tile(5000)
-    mask = np.ones(tile.shape[1:], bool)
-    mask[:, :300] = False
+    masks = {"full": np.ones(tile.shape[1:], bool)}
+    masks["partial"] = masks["full"].copy()
+    masks["partial"][:, :300] = False
     t = Affine(0.05, 0, 300000.0, 0, -0.05, 6200000.0)
-    cpu: dict[str, list[float]] = {"baseline": [], "this tree": []}
-    loads = []
+    trees = ("baseline", "this tree")
+    cpu = {(m, w): [] for m in masks for w in trees}
+    loads, cases = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         base_src = d / "baseline"
         base_src.mkdir()
         commit = _export_revision(args.baseline_rev, base_src)
-        aligned = d / "aligned.tif"
-        write_geotiff(aligned, tile, transform=t, crs="EPSG:32756", mask=mask)
-        outs = {"baseline": d / "tile_baseline.tif", "this tree": d / "tile_here.tif"}
+        aligned = {m: write_geotiff(d / f"aligned_{m}.tif", tile, transform=t,
+                                    crs="EPSG:32756", mask=mask) for m, mask in masks.items()}
+        outs = {(m, w): d / f"tile_{m}_{w.replace(' ', '_')}.tif" for m, w in cpu}
         for _ in range(args.rounds):
             loads.append(round(os.getloadavg()[0], 2))
-            for which, src in (("baseline", base_src), ("this tree", ROOT)):
-                outs[which].unlink(missing_ok=True)
-                cpu[which].append(child(src, aligned, outs[which], t))
-        same_tile(outs["baseline"], outs["this tree"])
-        sizes = {w: p.stat().st_size for w, p in outs.items()}
+            for m in masks:
+                for which, src in zip(trees, (base_src, ROOT), strict=True):
+                    outs[m, which].unlink(missing_ok=True)
+                    cpu[m, which].append(child(src, aligned[m], outs[m, which], t))
+        for m in masks:
+            worst = same_tile(outs[m, "baseline"], outs[m, "this tree"])
+            cases[m] = {"overview_max_diff_dn": worst, **{
+                w: {"cpu_s": [round(x, 3) for x in cpu[m, w]],
+                    "cpu_s_min": round(min(cpu[m, w]), 3),
+                    "cpu_s_median": round(statistics.median(cpu[m, w]), 3),
+                    "file_mb": round(outs[m, w].stat().st_size / 1e6, 2)} for w in trees}}
     res = {"imagery": source, "baseline_revision": args.baseline_rev, "baseline_commit": commit,
            "rounds": args.rounds, "load_average_per_round": loads,
-           "identical_decoded_pixels_mask_georef_tags": True,
-           "cases": {w: {"cpu_s": [round(x, 3) for x in v], "cpu_s_min": round(min(v), 3),
-                         "cpu_s_median": round(statistics.median(v), 3),
-                         "file_mb": round(sizes[w] / 1e6, 2)} for w, v in cpu.items()}}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(res, indent=2) + "\n")
+           "identical_full_resolution_pixels_mask_georef_tags_overview_sizes_and_masks": True,
+           "cases": cases}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(res, indent=2) + "\n")
     print("| write_tile, 5000² RGB + mask | CPU s (min / median) | file MB |\n|---|---|---|")
-    for w, r in res["cases"].items():
-        name = f"{args.baseline_rev} ({commit[:8]})" if w == "baseline" else w
-        print(f"| {name} | {r['cpu_s_min']} / {r['cpu_s_median']} | {r['file_mb']} |")
-    print(f"load average per round: {loads}; identical decoded tiles; "
-          f"{OUT.relative_to(ROOT)}")
+    for m, case in cases.items():
+        for w in trees:
+            r = case[w]
+            name = f"{args.baseline_rev} ({commit[:8]})" if w == "baseline" else w
+            print(f"| {m}: {name} | {r['cpu_s_min']} / {r['cpu_s_median']} | {r['file_mb']} |")
+        print(f"{m}: overview pixels differ by at most {case['overview_max_diff_dn']} DN")
+    print(f"load average per round: {loads}; identical full-resolution tiles; {args.out}")
 
 
 if __name__ == "__main__":

@@ -15,6 +15,9 @@ GDAL compresses with one thread (``NUM_THREADS=1``): its multi-threaded writer l
 blocks out in another order (files must be the same bytes whatever engine ran them), and
 geosim runs one single-threaded task per core (docs/scale.md), so more threads would only
 compete for the same cores without lowering the CPU per file.
+A writer holding the whole raster (:class:`WholeRaster`) gets its overviews computed in
+memory instead (:mod:`geosim.io.overviews`): GDAL's masked averaging and mask overviews were
+about a third of a 5000 px tile's write (docs/delivery.md).
 
 References
 ----------
@@ -24,16 +27,22 @@ GDAL COG driver: https://gdal.org/drivers/raster/cog.html
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
+import warnings
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from xml.etree import ElementTree
 
 import numpy as np
 import rasterio
 import rasterio.shutil
+from rasterio.errors import NotGeoreferencedWarning
 
 from geosim.io.atomic import atomic_path
+from geosim.io.overviews import average_overviews
 
 #: Internal tile size (pixels) of every COG geosim writes; overviews are built down to it.
 COG_BLOCK_PX = 256
@@ -86,10 +95,70 @@ def copy_as_cog(src: str | os.PathLike[str], dst: str | os.PathLike[str], **opti
     return Path(dst)
 
 
+@dataclass(frozen=True)
+class WholeRaster:
+    """The whole raster a writer holds in memory, from which :func:`cog_writer` computes the
+    overviews itself (:mod:`geosim.io.overviews`) instead of GDAL reading the file back.
+
+    Attributes
+    ----------
+    array
+        ``(bands, rows, cols)`` pixels, exactly as written to the file.
+    valid
+        ``(rows, cols)`` bool mask (True = valid) written as the internal mask.
+    fill
+        Value of overview pixels with no valid pixel under them (the nodata value, or 0).
+    """
+
+    array: np.ndarray
+    valid: np.ndarray
+    fill: float = 0
+
+
+def _overview_source(scratch: Path, whole: WholeRaster, block_px: int) -> Path | None:
+    """Write the overview levels of ``whole`` beside ``scratch`` (uncompressed GeoTIFFs with
+    their internal masks) and a VRT of ``scratch`` listing them as its overviews (its mask's
+    too); return the VRT, or None when the raster needs no overviews.
+
+    The VRT is GDAL's own copy of the scratch (georeference, tags, descriptions, colour
+    interpretation, nodata and mask band as GDAL reads them), with ``<Overview>`` elements
+    added, so the COG copy (``OVERVIEWS=FORCE_USE_EXISTING``) keeps everything it would have
+    kept from the scratch.
+    """
+    levels = average_overviews(whole.array, whole.valid, block_px, fill=whole.fill)
+    if not levels:
+        return None
+    names = []
+    for i, level in enumerate(levels):
+        path = scratch.with_name(f"{scratch.name}.ovr{i + 1}.tif")
+        bands, rows, cols = level.array.shape
+        # the VRT places the level; the file itself needs no georeference
+        with warnings.catch_warnings(category=NotGeoreferencedWarning, action="ignore"), \
+                rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(
+                path, "w", driver="GTiff", width=cols, height=rows, count=bands,
+                dtype=level.array.dtype, compress="none") as dst:
+            dst.write(level.array)
+            dst.write_mask(level.valid.view(np.uint8) * np.uint8(255))
+        names.append(path.name)
+    vrt = scratch.with_name(scratch.name + ".vrt")
+    rasterio.shutil.copy(str(scratch), str(vrt), driver="VRT")
+    tree = ElementTree.parse(vrt)
+    root = tree.getroot()
+    targets = [(band, band.get("band")) for band in root.findall("VRTRasterBand")]
+    targets += [(band, "mask,1") for band in root.findall("MaskBand/VRTRasterBand")]
+    for band, source_band in targets:
+        for name in names:
+            ovr = ElementTree.SubElement(band, "Overview")
+            ElementTree.SubElement(ovr, "SourceFilename", relativeToVRT="1").text = name
+            ElementTree.SubElement(ovr, "SourceBand").text = source_band
+    tree.write(vrt)
+    return vrt
+
+
 @contextlib.contextmanager
 def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
                internal_mask: bool = False, cog_overrides: Mapping[str, Any] | None = None,
-               ) -> Iterator[rasterio.io.DatasetWriter]:
+               whole: WholeRaster | None = None) -> Iterator[rasterio.io.DatasetWriter]:
     """Open a scratch GeoTIFF for (windowed) writing; on success it becomes ``path`` as a COG.
 
     Parameters
@@ -103,6 +172,11 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
         Store the mask written with ``dst.write_mask`` as an internal mask band.
     cog_overrides
         COG creation options that replace those of :func:`cog_options` (e.g. ``LEVEL``).
+    whole
+        The whole raster as written, with the mask written as the internal mask: the
+        overviews (and the mask's) are then computed from it in memory
+        (:mod:`geosim.io.overviews`) instead of by GDAL reading the file back (0.6-0.7 CPU-s
+        less for a 5000 px RGB tile; same sizes and mask, pixels within rounding of GDAL's).
     """
     with atomic_path(path) as tmp:
         scratch = tmp.with_name(tmp.name.replace(".part", ".scratch"))
@@ -112,9 +186,15 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
             scratch_profile = {**dict(profile), **scratch_options(profile)}
             with env, rasterio.open(scratch, "w", **scratch_profile) as dst:
                 yield dst
-            copy_as_cog(scratch, tmp, **dict(cog_overrides or {}))
+            overrides = {k.upper(): v for k, v in (cog_overrides or {}).items()}
+            block_px = int(overrides.get("BLOCKSIZE", COG_BLOCK_PX))
+            vrt = None if whole is None else _overview_source(scratch, whole, block_px)
+            if vrt is None:
+                copy_as_cog(scratch, tmp, **overrides)
+            else:
+                copy_as_cog(vrt, tmp, **{**overrides, "OVERVIEWS": "FORCE_USE_EXISTING"})
         finally:
-            for leftover in (scratch, scratch.with_name(scratch.name + ".aux.xml")):
+            for leftover in scratch.parent.glob(glob.escape(scratch.name) + "*"):
                 with contextlib.suppress(FileNotFoundError):
                     leftover.unlink()
 

@@ -27,7 +27,7 @@ from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
 from geosim.errors import InputFileError, RasterError
-from geosim.io.cog import cog_writer
+from geosim.io.cog import WholeRaster, cog_writer
 from geosim.io.paths import relative_if_inside
 from geosim.scratch import scratch_array
 
@@ -319,6 +319,7 @@ def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, cou
                    tags: Mapping[str, str] | None = None, internal_mask: bool = False,
                    creation_options: Mapping[str, str] | None = None,
                    cog_overrides: Mapping[str, Any] | None = None,
+                   whole: WholeRaster | None = None,
                    ) -> Iterator[rasterio.io.DatasetWriter]:
     """Open a GeoTIFF for windowed writing; on success it is renamed into place as a COG.
 
@@ -328,12 +329,14 @@ def create_geotiff(path: str | os.PathLike[str], *, width: int, height: int, cou
     adds a GDAL internal mask band (write it with ``dst.write_mask``).
     ``creation_options`` are extra GTiff options (e.g. ``ZLEVEL``, ``NUM_THREADS``) of the
     scratch file; ``cog_overrides`` replace COG options of the final file (e.g. ``LEVEL``).
+    A writer holding the whole raster in memory passes it as ``whole``
+    (:class:`geosim.io.cog.WholeRaster`): the overviews are then computed from it.
     """
     profile = geotiff_profile(width=width, height=height, count=count, dtype=dtype, crs=crs,
                               transform=transform, nodata=nodata)
     profile.update(creation_options or {})
     with cog_writer(path, profile, internal_mask=internal_mask,
-                    cog_overrides=cog_overrides) as dst:
+                    cog_overrides=cog_overrides, whole=whole) as dst:
         if band_descriptions is not None:
             for i, desc in enumerate(band_descriptions, start=1):
                 dst.set_band_description(i, desc)
@@ -368,7 +371,10 @@ def write_geotiff(path: str | os.PathLike[str], array: np.ndarray, *, transform:
     with create_geotiff(path, width=arr.shape[2], height=arr.shape[1], count=arr.shape[0],
                         dtype=arr.dtype, crs=crs, transform=transform, nodata=nodata,
                         band_descriptions=band_descriptions, tags=tags,
-                        internal_mask=mask is not None, cog_overrides=cog_overrides) as dst:
+                        internal_mask=mask is not None, cog_overrides=cog_overrides,
+                        whole=None if mask is None else WholeRaster(
+                            arr, np.asarray(mask, dtype=bool), 0 if nodata is None else nodata),
+                        ) as dst:
         dst.write(arr)
         if mask is not None:
             dst.write_mask(mask.astype(np.uint8) * 255)

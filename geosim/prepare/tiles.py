@@ -22,7 +22,7 @@ from affine import Affine
 from rasterio.windows import Window
 from rasterio.windows import bounds as window_bounds
 
-from geosim.io.cog import TILE_COMPRESSION_OPTIONS
+from geosim.io.cog import TILE_COMPRESSION_OPTIONS, WholeRaster
 from geosim.io.raster import create_geotiff, naming_read_failures
 
 
@@ -143,7 +143,7 @@ def write_tile(reader: Any, task: WarpTileTask, dst_path: str, img: np.ndarray,
     with create_geotiff(dst_path, width=width, height=height, count=reader.count,
                         dtype=reader.dtype, crs=reader.crs, transform=task.tile.transform,
                         band_descriptions=reader.descriptions, tags=task.tags,
-                        internal_mask=True,
+                        internal_mask=True, whole=WholeRaster(img, valid),
                         cog_overrides=TILE_COMPRESSION_OPTIONS[task.compression]) as dst:
         dst.colorinterp = reader.colorinterp
         dst.write(img)

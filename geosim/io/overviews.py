@@ -1,0 +1,123 @@
+"""Overview levels of an in-memory raster, as GDAL's COG driver would average them.
+
+GDAL builds a COG's overviews by reading the written raster back; with an internal mask its
+``AVERAGE`` takes a generic per-pixel path and the mask's own overviews are built and
+stored in temporary files (compressed, then decompressed again): for a 5000 px RGB tile with
+its mask that was ~0.9 of the 1.7 CPU-s the COG copy cost. A writer that already holds the
+whole array (a tile, a degraded tile) computes the levels here instead, with OpenCV's area
+averaging, and hands them to the COG copy (:func:`geosim.io.cog.cog_writer`).
+
+The levels follow GDAL's rules, so a reader cannot tell them apart from GDAL's own beyond
+rounding (tested against GDAL's overviews in ``tests/test_cog_overviews.py``):
+
+* sizes: halve (integer division, at least 1 px) until both sides fit in one block;
+* pixels: the mean of the *valid* pixels the overview pixel covers (area weights where the
+  ratio is not 2), rounded half up for integer types; 0 (or nodata) where none is valid;
+* mask: valid wherever any covered pixel is valid.
+
+Each level is computed from the previous level's unrounded sums, so no rounding error
+accumulates down the pyramid (GDAL's own, cascading through rounded levels, drifts by up to
+1.3 DN at the fourth level).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class OverviewLevel:
+    """One overview level.
+
+    Attributes
+    ----------
+    array
+        ``(bands, rows, cols)`` pixels, in the raster's dtype.
+    valid
+        ``(rows, cols)`` bool mask (True = valid).
+    """
+
+    array: np.ndarray
+    valid: np.ndarray
+
+
+def overview_shapes(rows: int, cols: int, block_px: int) -> list[tuple[int, int]]:
+    """``(rows, cols)`` of each overview level GDAL's COG driver makes (``OVERVIEWS=AUTO``).
+
+    Halve both sides (integer division, at least 1 px) until both fit in ``block_px``; a
+    raster that already fits gets none.
+    """
+    shapes: list[tuple[int, int]] = []
+    while rows > block_px or cols > block_px:
+        rows, cols = max(rows // 2, 1), max(cols // 2, 1)
+        shapes.append((rows, cols))
+    return shapes
+
+
+def _area_mean(plane: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Area-weighted mean of a float32 plane onto ``shape`` (rows, cols)."""
+    return cv2.resize(plane, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
+
+
+def _to_dtype(mean: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Round half up and clip to an integer dtype's range; floats are kept."""
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        return np.clip(np.floor(mean + 0.5), info.min, info.max).astype(dtype)
+    return mean.astype(dtype)
+
+
+def average_overviews(array: np.ndarray, valid: np.ndarray | None, block_px: int, *,
+                      fill: float = 0) -> list[OverviewLevel]:
+    """Masked-average overview levels of a ``(bands, rows, cols)`` array.
+
+    Parameters
+    ----------
+    array
+        The full-resolution pixels (any numeric dtype).
+    valid
+        ``(rows, cols)`` bool mask (True = valid), or None when every pixel is valid.
+    block_px
+        The COG's internal tile size in pixels (sets how many levels there are).
+    fill
+        Value of overview pixels with no valid pixel under them (nodata, or 0).
+
+    Returns
+    -------
+    list of OverviewLevel
+        Largest level first; empty when the raster fits in one block.
+    """
+    shapes = overview_shapes(array.shape[1], array.shape[2], block_px)
+    if not shapes:
+        return []
+    all_valid = valid is None or bool(valid.all())
+    # The area mean of (pixel × valid) and of valid, carried unrounded from level to level:
+    # their ratio is the mean of the valid pixels under each overview pixel.
+    weight = None if all_valid else valid.astype(np.float32)
+    weights: list[np.ndarray | None] = []
+    for shape in shapes:
+        weight = None if weight is None else _area_mean(weight, shape)
+        weights.append(weight)
+    per_band: list[list[np.ndarray]] = []
+    for band in array:
+        plane = band.astype(np.float32)
+        if not all_valid:
+            plane *= valid
+        levels = []
+        for shape, w in zip(shapes, weights, strict=True):
+            plane = _area_mean(plane, shape)
+            mean = plane if w is None else np.divide(plane, w, out=np.full_like(plane, fill),
+                                                     where=w > 0)
+            levels.append(_to_dtype(mean, array.dtype))
+        per_band.append(levels)
+    out = []
+    for i, (shape, w) in enumerate(zip(shapes, weights, strict=True)):
+        level_valid = np.ones(shape, bool) if w is None else w > 0
+        pixels = np.stack([levels[i] for levels in per_band])
+        if w is not None:
+            pixels[:, ~level_valid] = np.asarray(fill).astype(array.dtype)
+        out.append(OverviewLevel(pixels, level_valid))
+    return out
