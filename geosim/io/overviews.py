@@ -1,23 +1,25 @@
-"""Overview levels of an in-memory raster, as GDAL's COG driver would average them.
+"""Overview levels of an in-memory raster, averaged as GDAL's COG driver averages them.
 
 GDAL builds a COG's overviews by reading the written raster back; with an internal mask its
 ``AVERAGE`` takes a generic per-pixel path and the mask's own overviews are built and
-stored in temporary files (compressed, then decompressed again): for a 5000 px RGB tile with
-its mask that was ~0.9 of the 1.7 CPU-s the COG copy cost. A writer that already holds the
-whole array (a tile, a degraded tile) computes the levels here instead, with OpenCV's area
-averaging, and hands them to the COG copy (:func:`geosim.io.cog.cog_writer`).
+stored in temporary files (compressed, then decompressed again): about 0.65 of the 1.96
+CPU-s of writing a 5000 px RGB tile with its mask (benchmarks/bench_tile_write.py). A writer
+that already holds the whole array (a tile, a degraded tile) computes the levels here
+instead, with OpenCV's area averaging, and hands them to the COG copy
+(:func:`geosim.io.cog.cog_writer`).
 
-The levels follow GDAL's rules, so a reader cannot tell them apart from GDAL's own beyond
-rounding (tested against GDAL's overviews in ``tests/test_cog_overviews.py``):
+The levels follow GDAL's rules (tested against GDAL's own overviews in
+``tests/test_cog_overviews.py``: same sizes and masks, pixels within 1 DN on whole rasters):
 
 * sizes: halve (integer division, at least 1 px) until both sides fit in one block;
 * pixels: the mean of the *valid* pixels the overview pixel covers (area weights where the
   ratio is not 2), rounded half up for integer types; 0 (or nodata) where none is valid;
 * mask: valid wherever any covered pixel is valid.
 
-Each level is computed from the previous level's unrounded sums, so no rounding error
-accumulates down the pyramid (GDAL's own, cascading through rounded levels, drifts by up to
-1.3 DN at the fourth level).
+Each level is computed from the previous level's unrounded sums (pixel × valid, and
+valid), so no rounding accumulates down the pyramid and a level-k pixel weighs every valid
+base pixel alike. GDAL's levels, each made from the previous rounded level, drift by up to
+1.3 DN on a whole raster and by tens of DN along the edge of a partial raster's data.
 """
 
 from __future__ import annotations
