@@ -103,23 +103,17 @@ def average_overviews(array: np.ndarray, valid: np.ndarray | None, block_px: int
     for shape in shapes:
         weight = None if weight is None else _area_mean(weight, shape)
         weights.append(weight)
-    per_band: list[list[np.ndarray]] = []
-    for band in array:
+    out = [OverviewLevel(np.empty((array.shape[0], *shape), array.dtype),
+                         np.ones(shape, bool) if w is None else w > 0)
+           for shape, w in zip(shapes, weights, strict=True)]
+    for b, band in enumerate(array):
         plane = band.astype(np.float32)
         if not all_valid:
             plane *= valid
-        levels = []
-        for shape, w in zip(shapes, weights, strict=True):
-            plane = _area_mean(plane, shape)
+        for level, w in zip(out, weights, strict=True):
+            plane = _area_mean(plane, level.valid.shape)
+            # no valid pixel under it: the fill value (rounds to itself)
             mean = plane if w is None else np.divide(plane, w, out=np.full_like(plane, fill),
-                                                     where=w > 0)
-            levels.append(_to_dtype(mean, array.dtype))
-        per_band.append(levels)
-    out = []
-    for i, (shape, w) in enumerate(zip(shapes, weights, strict=True)):
-        level_valid = np.ones(shape, bool) if w is None else w > 0
-        pixels = np.stack([levels[i] for levels in per_band])
-        if w is not None:
-            pixels[:, ~level_valid] = np.asarray(fill).astype(array.dtype)
-        out.append(OverviewLevel(pixels, level_valid))
+                                                     where=level.valid)
+            level.array[b] = _to_dtype(mean, array.dtype)
     return out
