@@ -44,7 +44,12 @@ from geosim.diagnose.stage_noise import estimate_scene_noise, noise_helps
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
 from geosim.diagnose.stage_register import coregister
 from geosim.diagnose.stage_summary import PHYSICAL_Q, make_summary, mismatch_maps, plot_data
-from geosim.diagnose.stage_withdraw import blur_at_q_floor, jpeg_delivered_isotropic, never_worse
+from geosim.diagnose.stage_withdraw import (
+    blur_at_q_floor,
+    jpeg_delivered_isotropic,
+    jpeg_resampling_beyond_optics,
+    never_worse,
+)
 
 __all__ = ["Diagnosis", "diagnose_arrays", "blockiness", "PHYSICAL_Q"]
 
@@ -140,6 +145,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model, withdrawn_noise = noise_helps(inp, model, ev)
     model = aliasing_test(inp, model, sel, setup, ev, window.candidates)
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
+    model, withdrawn_alias = jpeg_resampling_beyond_optics(inp, model, sel, setup)
     found = model
     # the same judgement over every valid block (the changed regions included)
     whole = replace(ev, mask=inp.valid, origins=block_origins(
@@ -147,7 +153,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model, withdrawn_iso = jpeg_delivered_isotropic(inp, model, sel, setup, ev)
     model, withdrawn = never_worse(inp, model, sel, setup, ev,
                                    whole.spectral_error if len(whole.origins) >= 4 else None)
-    withdrawn = withdrawn_noise + withdrawn_floor + withdrawn_iso + withdrawn
+    withdrawn = withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso + withdrawn
     refined = model.delivered(simulate, np.random.default_rng(ev.noise_seed),
                               quantized=inp.quantized)
     claims = claim_effects(inp, model.without(registration=reg, compression=found.compression,

@@ -285,6 +285,9 @@ class Claim:
     alternatives: list[dict[str, Any]] = field(default_factory=list)
     rmse_after: float = float("nan")
     spectral_error_after: float = float("nan")
+    #: the statistics of a claim found by a test rather than a fit (compression: the
+    #: block-edge step test's ratios, z-scores and phases per direction)
+    test: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         e = get_effect(self.name)
@@ -295,6 +298,8 @@ class Claim:
             "spectral_error_after": self.spectral_error_after}
         if self.heldout_gain is not None:
             out["heldout_gain"] = self.heldout_gain
+        if self.test is not None:
+            out["test"] = self.test
         if self.alternatives:
             out["alternatives"] = self.alternatives
             out["indistinguishable_from"] = [a["name"] for a in self.alternatives]

@@ -41,15 +41,20 @@ def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     if model.compression is not None:
         c = model.compression
         cur = cur.without(compression=c)
+        # found by the block-edge step test, not by a fit: no σ for the quality, and the
+        # evidence in place of a ΔBIC is the test's χ² (the weaker direction's z²)
         out.append((Claim("compression", {"quality": c.quality,
                                           "block_offset_px": list(c.offset_px)},
-                          float(min(c.test["row_z"], c.test["col_z"]) ** 2), dict(c.test)), cur))
+                          {}, float(min(c.test["row_z"], c.test["col_z"]) ** 2),
+                          test=dict(c.test)), cur))
     for st in sel.steps:
         if st.name not in model.blur:
             continue
         cur = cur.without(q=st.fit.q, blur={n: p for n, p in st.fit.effects.items()
                                             if n in model.blur})
-        unc = {**st.fit.sigmas.get(st.name, {}), "q": st.fit.q}  # type: ignore[dict-item]
+        # 1-σ of the effect's parameters and of Q fitted with it (Q's σ, not its value)
+        unc = {**st.fit.sigmas.get(st.name, {}),  # type: ignore[dict-item]
+               "q": float(st.fit.sigmas.get("q", float("nan")))}
         alts = [{"name": a.name, "heldout_gain": a.cv_gain, "params": a.params}
                 for a in st.alternatives]
         out.append((Claim(st.name, dict(st.fit.effects[st.name]), unc, st.delta_bic,
