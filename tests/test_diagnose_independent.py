@@ -23,6 +23,7 @@ import diagnose_generator as gen  # noqa: E402
 from geosim.diagnose.combine import combine_flights  # noqa: E402
 from geosim.diagnose.engine import diagnose_arrays  # noqa: E402
 from geosim.diagnose.grids import calibrate_q_lv  # noqa: E402
+from geosim.diagnose.report_markdown import diagnosis_markdown  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
 
@@ -163,6 +164,7 @@ def test_jpeg_at_high_q_is_not_called_resampling():
     out = combine_flights({"A": d.summary, "B": d.summary}, reference="A")
     (comb,) = [e for e in out["effects"] if e["name"] == "compression"]
     assert comb["votes"] == "2/2" and comb["delta_bic"] == pytest.approx(c["delta_bic"])
+    assert f"block-edge step test χ² = {c['delta_bic']:.3g}" in diagnosis_markdown(d.summary)
 
 
 def test_resampling_under_jpeg_beyond_the_optics_is_withdrawn(realdata, samples_dir):
