@@ -21,7 +21,7 @@ import diagnose_generator as gen  # noqa: E402
 from geosim.diagnose.effects import get_effect  # noqa: E402
 from geosim.diagnose.exact import ExactBlocks, ExactSimulations, exact_fit  # noqa: E402
 from geosim.diagnose.fit import build_spectral_data, fit_transfer  # noqa: E402
-from geosim.diagnose.model import blur_apply  # noqa: E402
+from geosim.diagnose.model import ForwardModel, Registration, blur_apply  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.diagnose.spectra import block_origins  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
@@ -129,3 +129,43 @@ def test_native_resampling_aliases_as_the_native_sampling_does():
     wrong = abs(f2 - round(f2)) / pitch
     assert abs(wrong - alias) * n_sat > 5
     assert spec[peak] > 10 * np.median(spec[1:])
+
+
+def _columns_cosine(n_sat: int, phi: int, cycles: int) -> np.ndarray:
+    x = np.arange(n_sat * phi)
+    row = 100.0 + 50.0 * np.cos(2 * np.pi * cycles * x / (n_sat * phi))
+    return np.repeat(row[None, None, :], n_sat * phi, axis=1).astype(np.float32)
+
+
+def test_native_phase_shift_flips_the_alias_not_the_passband():
+    """Moving the scene half a native cell against the native grid (and the product back,
+    ``ForwardModel.native_phase_shift_px``) leaves content below the native Nyquist where
+    it was and turns content the native grid aliases by π (analytic: a sample at
+    (k + ½)·pitch of frequency f, reconstructed at f − 1/pitch): what a native grid of
+    unknown phase changes, and nothing else."""
+    n_sat, phi = 128, gen.PHI
+    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
+                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+    w = np.hanning(n_sat - 32)
+
+    def spectra(cycles: int) -> tuple[np.ndarray, np.ndarray, int]:
+        sim = QSimulator(_columns_cosine(n_sat, phi, cycles), phi=phi, q_min=0.5)
+        n_nat = int(round(n_sat / 1.5))
+        model = ForwardModel(q=0.6, blur={"resampling": {"native_pitch_px": 1.5}},
+                             registration=reg)
+        half = 0.5 * n_sat / n_nat                  # half a cell of the pitch rendered
+
+        def spec(m: ForwardModel) -> np.ndarray:
+            prof = m.deterministic(sim)[0, 16:-16, 16:-16].mean(axis=0)  # off the edges
+            return np.fft.rfft((prof - prof.mean()) * w)
+
+        s0 = spec(model)
+        s1 = spec(model.without(native_phase_shift_px=(half, 0.0)))
+        k = int(np.argmax(np.abs(s0[1:]))) + 1
+        return s0, s1, k
+
+    s0, s1, k = spectra(16)                         # 0.125 cycles/px: below the native Nyquist
+    assert abs(s1[k] - s0[k]) < 0.02 * abs(s0[k]), (s0[k], s1[k])
+    s0, s1, k = spectra(77)                         # 0.60 cycles/px: aliased to ≈ 0.064
+    assert abs(k / (n_sat - 32) - 0.064) < 0.015, k
+    assert abs(s1[k] + s0[k]) < 0.1 * abs(s0[k]), (s0[k], s1[k])   # sign flipped

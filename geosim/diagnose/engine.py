@@ -35,7 +35,11 @@ from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.spectra import block_origins
 from geosim.diagnose.stage_aliasing import aliasing_test
 from geosim.diagnose.stage_blur import adopt, select_with_q_room
-from geosim.diagnose.stage_change import MIN_REGION_DN2, changed_regions
+from geosim.diagnose.stage_change import (
+    MIN_REGION_DN2,
+    changed_regions,
+    resampling_phase_dn2,
+)
 from geosim.diagnose.stage_claims import claim_effects
 from geosim.diagnose.stage_inputs import grey, make_inputs
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
@@ -132,9 +136,10 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         # differ (noise, texture): their residual carries both, ≈ twice the model's own
         jpeg_dn2 = 2.0 * locate.residual_energy_map(
             grey(det - model.without(compression=None).deterministic(simulate)))
+    # and the aliasing of a resampling's native grid, whose phase is unknown
     regions, labels, energy, inner = changed_regions(
         inp, grey(det), ratio=6.0, floor_dn2=max(MIN_REGION_DN2, 0.447 * noise_var),
-        affine=False, extra_dn2=jpeg_dn2)
+        affine=False, extra_dn2=jpeg_dn2 + resampling_phase_dn2(inp, model))
     change = ChangedRegions(regions=regions, labels=labels, inner=inner)
     eval_mask = inner & ~locate.regions_mask(labels, regions, kind=None)
     ev_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=eval_mask)

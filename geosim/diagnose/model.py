@@ -187,6 +187,11 @@ class ForwardModel:
     seam: GainStep | None = None
     radiometry: RadiometryChoice | None = None
     noise: NoiseEstimate | None = None
+    #: (d_col, d_row), product pixels: the scene moved this much against resampling's
+    #: native grid and the product moved back, i.e. the same product from a native grid
+    #: placed elsewhere (a real grid's phase is unknown; see
+    #: :func:`geosim.diagnose.stage_change.resampling_phase_dn2`)
+    native_phase_shift_px: tuple[float, float] = (0.0, 0.0)
 
     def sim_at(self, simulate: Callable[[float], np.ndarray], q: float | None = None, *,
                compressed: bool = True) -> np.ndarray:
@@ -232,10 +237,13 @@ class ForwardModel:
         s = None
         if resampled:
             # resampling rendered from the fine grid (native sampling of the optics' image)
-            s = native(self.q, rest["resampling"]["native_pitch_px"], shift_px=shift,
-                       transfer=tr, key=key)
+            ps = self.native_phase_shift_px
+            s = native(self.q, rest["resampling"]["native_pitch_px"],
+                       shift_px=(shift[0] + ps[0], shift[1] + ps[1]), transfer=tr, key=key)
             if s is not None:
                 rest = {n: p for n, p in rest.items() if n != "resampling"}
+                if ps != (0.0, 0.0):
+                    s = fourier_shift(s, (-ps[0], -ps[1]))
         if s is None:
             v = variant(shift_px=shift, transfer=tr, key=key) if lsi else None
             if v is None:

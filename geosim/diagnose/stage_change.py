@@ -13,7 +13,7 @@ from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_radiometry import affine_residual
 
-__all__ = ["changed_regions", "scene_change_claim", "MIN_REGION_DN2"]
+__all__ = ["changed_regions", "scene_change_claim", "resampling_phase_dn2", "MIN_REGION_DN2"]
 
 #: floor of the residual energy a region must exceed (× ratio threshold), DN²
 MIN_REGION_DN2 = 4.0
@@ -39,6 +39,34 @@ def changed_regions(inp: Inputs, model_grey: np.ndarray, *, ratio: float,
     regions, labels = locate.find_regions(energy, valid=inner, expected_dn2=expected,
                                           ratio_threshold=ratio)
     return regions, labels, energy, inner
+
+
+def resampling_phase_dn2(inp: Inputs, model: ForwardModel) -> np.ndarray | float:
+    """Residual energy (map, DN²) that a resampling's unknown native-grid phase leaves.
+
+    The aliasing of a coarser native grid depends on where that grid lies against the
+    scene, which nothing in the product tells: the model's grid starts at the product
+    grid's origin, the real one anywhere. Its aliased component is strongest on
+    object-sized high-contrast texture and would otherwise read as moved objects
+    (development c84 at Q 0.99, c176 at Q 1.17: ``scene_change`` claimed beside a true
+    resampling). Moving the scene half a native cell along one axis against the grid
+    (and the product back) leaves the pass band as it was and flips the sign of the
+    aliases folded along that axis (a sample at (k + ½)·pitch of frequency f,
+    reconstructed at f − 1/pitch, turns by π), so the difference from the model is twice
+    those aliases; against a grid of unknown phase θ the expected residual of an alias
+    ``a`` is E|a (e^{iθ} − 1)|² = 2|a|². Half the summed energies of the two one-axis
+    differences is that expectation (the aliases folded along both axes counted twice).
+    Before compression (its own error is :func:`changed_regions`'s other ``extra_dn2``);
+    0 without resampling."""
+    p = model.blur.get("resampling")
+    if p is None:
+        return 0.0
+    m = model.without(compression=None)
+    det = m.deterministic(inp.simulate)
+    half = 0.5 * p["native_pitch_px"]
+    return 0.5 * sum(locate.residual_energy_map(grey(
+        det - m.without(native_phase_shift_px=d).deterministic(inp.simulate)))
+        for d in ((half, 0.0), (0.0, half)))
 
 
 def scene_change_claim(inp: Inputs, model: ForwardModel, sc: list[locate.Region],

@@ -52,9 +52,12 @@ def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
             continue
         cur = cur.without(q=st.fit.q, blur={n: p for n, p in st.fit.effects.items()
                                             if n in model.blur})
-        # 1-σ of the effect's parameters and of Q fitted with it (Q's σ, not its value)
-        unc = {**st.fit.sigmas.get(st.name, {}),  # type: ignore[dict-item]
-               "q": float(st.fit.sigmas.get("q", float("nan")))}
+        # 1-σ of the effect's parameters and of Q fitted with it (Q's σ, not its value;
+        # none where the step held Q fixed, e.g. resampling's pitch scanned at the model's Q)
+        unc = dict(st.fit.sigmas.get(st.name, {}))  # type: ignore[arg-type]
+        q_sigma = float(st.fit.sigmas.get("q", 0.0))  # type: ignore[arg-type]
+        if q_sigma > 0:
+            unc["q"] = q_sigma
         alts = [{"name": a.name, "heldout_gain": a.cv_gain, "params": a.params}
                 for a in st.alternatives]
         out.append((Claim(st.name, dict(st.fit.effects[st.name]), unc, st.delta_bic,
