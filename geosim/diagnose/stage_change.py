@@ -48,8 +48,9 @@ def resampling_phase_dn2(inp: Inputs, model: ForwardModel) -> np.ndarray | float
     scene, which nothing in the product tells: the model's grid starts at the product
     grid's origin, the real one anywhere. Its aliased component is strongest on
     object-sized high-contrast texture and would otherwise read as moved objects
-    (development c84 at Q 0.99, c176 at Q 1.17: ``scene_change`` claimed beside a true
-    resampling). Moving the scene half a native cell along one axis against the grid
+    (development c176 at Q 1.17: ``scene_change`` claimed beside a true resampling and
+    a shift; c84 at Q 0.99, whose native pitch is fitted 6 % short, still claims it: a
+    wrong pitch changes where the aliases fold, not only their phase). Moving the scene half a native cell along one axis against the grid
     (and the product back) leaves the pass band as it was and flips the sign of the
     aliases folded along that axis (a sample at (k + ½)·pitch of frequency f,
     reconstructed at f − 1/pitch, turns by π), so the difference from the model is twice
