@@ -50,15 +50,16 @@ def resampling_phase_dn2(inp: Inputs, model: ForwardModel) -> np.ndarray | float
     object-sized high-contrast texture and would otherwise read as moved objects
     (development c176 at Q 1.17: ``scene_change`` claimed beside a true resampling and
     a shift; c84 at Q 0.99, whose native pitch is fitted 6 % short, still claims it: a
-    wrong pitch changes where the aliases fold, not only their phase). Moving the scene half a native cell along one axis against the grid
-    (and the product back) leaves the pass band as it was and flips the sign of the
-    aliases folded along that axis (a sample at (k + ½)·pitch of frequency f,
-    reconstructed at f − 1/pitch, turns by π), so the difference from the model is twice
-    those aliases; against a grid of unknown phase θ the expected residual of an alias
-    ``a`` is E|a (e^{iθ} − 1)|² = 2|a|². Half the summed energies of the two one-axis
-    differences is that expectation (the aliases folded along both axes counted twice).
-    Before compression (its own error is :func:`changed_regions`'s other ``extra_dn2``);
-    0 without resampling."""
+    wrong pitch changes where the aliases fold, not only their phase).
+
+    Moving the scene half a native cell along one axis against the grid (and the product
+    back) leaves the pass band as it was and flips the sign of the aliases folded along
+    that axis (a sample at (k + ½)·pitch of frequency f, reconstructed at f − 1/pitch,
+    turns by π), so the difference from the model is twice those aliases. Against a grid
+    of unknown phase θ the expected residual of an alias ``a`` is
+    E|a (e^{iθ} − 1)|² = 2|a|²: half the summed energies of the two one-axis differences
+    (the aliases folded along both axes counted twice). Taken before compression (its own
+    error is :func:`changed_regions`'s other ``extra_dn2``); 0 without resampling."""
     p = model.blur.get("resampling")
     if p is None:
         return 0.0
