@@ -100,6 +100,14 @@ def test_exact_transfer_model_removes_the_window_bias():
     assert err_exact < err_fast, (fast.effects, exact.effects)
 
 
+def _columns_cosine(n_sat: int, phi: int, cycles: int) -> np.ndarray:
+    """A fine-grid image varying along columns only: a cosine of ``cycles`` whole cycles
+    over the window (bands, rows, cols), DN."""
+    x = np.arange(n_sat * phi)
+    row = 100.0 + 50.0 * np.cos(2 * np.pi * cycles * x / (n_sat * phi))
+    return np.repeat(row[None, None, :], n_sat * phi, axis=1).astype(np.float32)
+
+
 def test_native_resampling_aliases_as_the_native_sampling_does():
     """A sinusoid above the product Nyquist (0.60 cycles per product pixel) seen by a
     native sampling of pitch ≈ 1.5 px folds to |0.60·p − 1| / p cycles per product pixel
@@ -109,10 +117,7 @@ def test_native_resampling_aliases_as_the_native_sampling_does():
     native alias."""
     n_sat, phi = 128, gen.PHI
     cycles = 77                                   # whole cycles over the fine window
-    x = np.arange(n_sat * phi)
-    row = 100.0 + 50.0 * np.cos(2 * np.pi * cycles * x / (n_sat * phi))
-    uav = np.repeat(row[None, None, :], n_sat * phi, axis=1).astype(np.float32)
-    sim = QSimulator(uav, phi=phi, q_min=0.5)
+    sim = QSimulator(_columns_cosine(n_sat, phi, cycles), phi=phi, q_min=0.5)
     out = sim.native(0.6, 1.5)
     n_nat = int(round(n_sat / 1.5))
     pitch = n_sat / n_nat                         # native pitch actually rendered, px
@@ -129,12 +134,6 @@ def test_native_resampling_aliases_as_the_native_sampling_does():
     wrong = abs(f2 - round(f2)) / pitch
     assert abs(wrong - alias) * n_sat > 5
     assert spec[peak] > 10 * np.median(spec[1:])
-
-
-def _columns_cosine(n_sat: int, phi: int, cycles: int) -> np.ndarray:
-    x = np.arange(n_sat * phi)
-    row = 100.0 + 50.0 * np.cos(2 * np.pi * cycles * x / (n_sat * phi))
-    return np.repeat(row[None, None, :], n_sat * phi, axis=1).astype(np.float32)
 
 
 def test_native_phase_shift_flips_the_alias_not_the_passband():

@@ -130,16 +130,17 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
     det = model.deterministic(simulate)
+    plain = det   # the model image before compression
     jpeg_dn2: np.ndarray | float = 0.0
     if model.compression is not None:
         # the real scene's JPEG error and the model's are independent where the pixels
         # differ (noise, texture): their residual carries both, ≈ twice the model's own
-        jpeg_dn2 = 2.0 * locate.residual_energy_map(
-            grey(det - model.without(compression=None).deterministic(simulate)))
+        plain = model.without(compression=None).deterministic(simulate)
+        jpeg_dn2 = 2.0 * locate.residual_energy_map(grey(det - plain))
     # and the aliasing of a resampling's native grid, whose phase is unknown
     regions, labels, energy, inner = changed_regions(
         inp, grey(det), ratio=6.0, floor_dn2=max(MIN_REGION_DN2, 0.447 * noise_var),
-        affine=False, extra_dn2=jpeg_dn2 + resampling_phase_dn2(inp, model))
+        affine=False, extra_dn2=jpeg_dn2 + resampling_phase_dn2(inp, model, plain))
     change = ChangedRegions(regions=regions, labels=labels, inner=inner)
     eval_mask = inner & ~locate.regions_mask(labels, regions, kind=None)
     ev_origins = block_origins(inp.valid.shape, block_px=setup.block_px, valid=eval_mask)

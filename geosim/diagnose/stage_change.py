@@ -41,7 +41,8 @@ def changed_regions(inp: Inputs, model_grey: np.ndarray, *, ratio: float,
     return regions, labels, energy, inner
 
 
-def resampling_phase_dn2(inp: Inputs, model: ForwardModel) -> np.ndarray | float:
+def resampling_phase_dn2(inp: Inputs, model: ForwardModel,
+                         plain: np.ndarray) -> np.ndarray | float:
     """Residual energy (map, DN²) that a resampling's unknown native-grid phase leaves.
 
     The aliasing of a coarser native grid depends on where that grid lies against the
@@ -59,15 +60,15 @@ def resampling_phase_dn2(inp: Inputs, model: ForwardModel) -> np.ndarray | float
     of unknown phase θ the expected residual of an alias ``a`` is
     E|a (e^{iθ} − 1)|² = 2|a|²: half the summed energies of the two one-axis differences
     (the aliases folded along both axes counted twice). Taken before compression (its own
-    error is :func:`changed_regions`'s other ``extra_dn2``); 0 without resampling."""
+    error is :func:`changed_regions`'s other ``extra_dn2``): ``plain`` is the model's
+    image without it. 0 without resampling."""
     p = model.blur.get("resampling")
     if p is None:
         return 0.0
     m = model.without(compression=None)
-    det = m.deterministic(inp.simulate)
     half = 0.5 * p["native_pitch_px"]
     return 0.5 * sum(locate.residual_energy_map(grey(
-        det - m.without(native_phase_shift_px=d).deterministic(inp.simulate)))
+        plain - m.without(native_phase_shift_px=d).deterministic(inp.simulate)))
         for d in ((half, 0.0), (0.0, half)))
 
 
