@@ -4,9 +4,9 @@ The "real" satellite scenes come from ``benchmarks/diagnose_generator.py``, whic
 imports nothing from geosim (each effect written again from its physics, blur applied
 on the 0.05 m grid before sampling). Cases come from every real image in
 ``../shared/realdata`` and the sample site, phi = 10, Q from 0.8 to 4.5, 0-3 effects,
-every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1223 (thresholds are
+every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1255 (thresholds are
 tuned on these only; each earlier round's validation half was seen in its final report, so
-it joined development). Validation half (round 7, fresh): the 32 seeds 1224-1255, run only
+it joined development). Validation half (round 8, fresh): the 32 seeds 1256-1287, run only
 for the final report. The diagnosis sees the
 UAV image and the scene, calibrates Q by Laplacian variance, and is scored by the
 benchmark's own measures (exact effect names; its own spectral error).
@@ -44,9 +44,9 @@ import diagnose_generator as gen  # noqa: E402
 
 REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
 SAMPLES = ROOT / "data" / "samples"
-N_VALIDATION_LAST = 255
-#: case indices (seed 1000 + i) of the two halves (round 7: development 0-223,
-#: validation 224-255)
+N_VALIDATION_LAST = 287
+#: case indices (seed 1000 + i) of the two halves (round 8: development 0-255,
+#: validation 256-287)
 DEVELOPMENT = [i for i in range(N_VALIDATION_LAST + 1) if not gen.is_validation_seed(1000 + i)]
 VALIDATION = [i for i in range(N_VALIDATION_LAST + 1) if gen.is_validation_seed(1000 + i)]
 N_CASES = len(DEVELOPMENT)
@@ -166,7 +166,7 @@ def main() -> None:
                     help="number of development cases (the first N)")
     ap.add_argument("--only", choices=("development", "validation"))
     ap.add_argument("--indices", type=lambda t: [int(v) for v in t.split(",")],
-                    help="comma-separated development case indices (0-223), "
+                    help="comma-separated development case indices (0-255), "
                          "e.g. to rerun the failures")
     ap.add_argument("--extension", choices=sorted(EXTENSION_RECIPES),
                     help="run only the development extension (seeds 5000-5999) with these "
@@ -196,11 +196,11 @@ def main() -> None:
     idx = {"development": dev, "validation": VALIDATION}.get(args.only, dev + VALIDATION)
     if args.indices:
         if set(args.indices) - set(DEVELOPMENT):
-            sys.exit("--indices: development cases only (0-223)")
+            sys.exit("--indices: development cases only (0-255)")
         idx = args.indices
     t0 = time.time()
     _write(args.out, run(idx, sources), sources, t0,
-           "1000 + i; development 1000-1223, validation 1224-1255 (round 7)")
+           "1000 + i; development 1000-1255, validation 1256-1287 (round 8)")
 
 
 def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
