@@ -53,7 +53,6 @@ from geosim.diagnose.stage_withdraw import (
     jpeg_delivered_isotropic,
     jpeg_resampling_beyond_optics,
     never_worse,
-    q_refit_insignificant,
 )
 
 __all__ = ["Diagnosis", "diagnose_arrays", "blockiness", "PHYSICAL_Q"]
@@ -158,11 +157,9 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     whole = replace(ev, mask=inp.valid, origins=block_origins(
         inp.valid.shape, block_px=setup.block_px, valid=inp.valid))
     model, withdrawn_iso = jpeg_delivered_isotropic(inp, model, sel, setup, ev)
-    model, withdrawn_q = q_refit_insignificant(inp, model, sel)
     model, withdrawn = never_worse(inp, model, sel, setup, ev,
                                    whole.spectral_error if len(whole.origins) >= 4 else None)
-    withdrawn = (withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso
-                 + withdrawn_q + withdrawn)
+    withdrawn = withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso + withdrawn
     refined = model.delivered(simulate, np.random.default_rng(ev.noise_seed),
                               quantized=inp.quantized)
     claims = claim_effects(inp, model.without(registration=reg, compression=found.compression,

@@ -1,9 +1,7 @@
 """Withdrawals judged on the delivered refined simulation: a blur that pins Q at its floor
 (:func:`blur_at_q_floor`), resampling under JPEG where the optics leave it no coherent
 trace (:func:`jpeg_resampling_beyond_optics`), an isotropic blur under JPEG that the
-delivered spectrum does not support (:func:`jpeg_delivered_isotropic`), a refitted Q
-that is not significantly different from the LV Q (:func:`q_refit_insignificant`), and
-the fall-back
+delivered spectrum does not support (:func:`jpeg_delivered_isotropic`), and the fall-back
 to fewer effects until the refined simulation fits no worse than the baseline
 (:func:`never_worse`)."""
 
@@ -22,17 +20,14 @@ from geosim.diagnose.stage_inputs import Inputs
 from geosim.diagnose.stage_noise import realisations
 
 __all__ = ["refit_without", "blur_at_q_floor", "jpeg_resampling_beyond_optics",
-           "jpeg_delivered_isotropic", "q_refit_insignificant", "never_worse",
-           "JPEG_ISOTROPIC_SPECTRAL_GAIN", "Q_FLOOR_REL", "Q_REFIT_SIGMAS"]
+           "jpeg_delivered_isotropic", "never_worse", "JPEG_ISOTROPIC_SPECTRAL_GAIN",
+           "Q_FLOOR_REL"]
 
 #: under JPEG an isotropic blur must bring the delivered refined spectrum (JPEG last, as
 #: the camera encodes) this much closer than the model without it (fraction)
 JPEG_ISOTROPIC_SPECTRAL_GAIN = 0.9
 #: Q within this factor of the bottom of its range counts as pinned there.
 Q_FLOOR_REL = 1.02
-#: a refitted Q (no blur effect claimed) replaces the LV Q only when it differs from it by
-#: more than this many of its own 1-σ uncertainties (a conventional two-sided 95 % test)
-Q_REFIT_SIGMAS = 2.0
 
 
 def refit_without(sel: BlurSelection, setup: SpectralSetup, keep: list[str],
@@ -132,27 +127,6 @@ def jpeg_delivered_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelectio
         return model, []
     return without, [{"name": n, "reason": "under JPEG (compressed last) the delivered "
                       "spectrum is not clearly closer with it"} for n in iso]
-
-
-def q_refit_insignificant(inp: Inputs, model: ForwardModel, sel: BlurSelection
-                          ) -> tuple[ForwardModel, list[dict[str, str]]]:
-    """Keep the LV Q when the paper's model alone was refitted and its Q is within
-    :data:`Q_REFIT_SIGMAS` σ of it.
-
-    With no blur effect claimed, the refit changes only Q. A change within its own
-    uncertainty is not a finding, and moving Q along the steep high-frequency roll-off of
-    the optics can still move the delivered spectrum away from the scene's (round 7's
-    validation c236, moved objects only: Q 3.09 → 3.12 ± 0.025, the benchmark's spectral
-    error 0.0744 → 0.0749; at the true 3.105, 0.0726). Both are estimates of one
-    quantity; the one the calibration delivered stays unless the data say otherwise."""
-    q_sigma = float(sel.final.sigmas.get("q", float("nan")))  # type: ignore[arg-type]
-    if model.blur or not np.isfinite(q_sigma) or q_sigma <= 0.0 \
-            or abs(float(model.q) - inp.q_base) > Q_REFIT_SIGMAS * q_sigma:
-        return model, []
-    return model.without(q=inp.q_base), [
-        {"name": "refitted_q", "reason": f"the refitted Q ({float(model.q):.3f} ± "
-         f"{q_sigma:.3f}) is within {Q_REFIT_SIGMAS:g} σ of the LV Q ({inp.q_base:.3f}); "
-         "the LV Q is kept"}]
 
 
 def never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
