@@ -437,6 +437,22 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
     return np.clip(np.rint(uav), 0, 255).astype(np.float32), sat
 
 
+def source_of(i: int, sources: list[Source]) -> Source:
+    """The source of case ``i`` (round robin, shifted by one every full round)."""
+    return sources[(i + i // len(sources)) % len(sources)]
+
+
+def source_sat_px(src: Source, margin_px: int = 12) -> int:
+    """The largest square scene (margins of ``margin_px`` around it) the source holds on
+    the 0.5 m product grid, px (as :func:`fine_window` cuts it)."""
+    import rasterio
+
+    with rasterio.open(src.path) as ds:
+        n_nat = min(ds.height, ds.width)
+    scale = 1.0 if src.gsd_m < FINE_GSD_M else src.gsd_m / FINE_GSD_M
+    return int(n_nat * scale) // PHI - 2 * margin_px
+
+
 def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,
               control_every: int = 5, base_seed: int = 1000,
               force: tuple[str, ...] | None = None,
@@ -458,7 +474,7 @@ def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: in
                          f"extension seeds {EXTENSION_SEEDS[0]}-{EXTENSION_SEEDS[1]}")
     rng = np.random.default_rng(seed)
     if sources:
-        src = sources[(i + i // len(sources)) % len(sources)]
+        src = source_of(i, sources)
         ground = fine_window(src, rng, sat_px=sat_px, margin_px=margin_px)
         name = src.name
         # small sources (SJER 40 m tiles, Australia): the window is what they hold; the

@@ -20,6 +20,10 @@ Run: python benchmarks/diagnose_independent.py [--cases N] [--only development|v
 (--cases N: the first N development cases; the validation half is always all 32.)
      python benchmarks/diagnose_independent.py --extension noise|isoblur [--extension-cases K]
      --out /tmp/x.json   (the extension only)
+     python benchmarks/diagnose_independent.py --indices I,J,... --sat-px 384 --out /tmp/y.json
+     (the same development cases on larger scenes: how much the scene's size limits the
+     diagnosis; sources smaller than the scene give what they hold, so pick the indices of
+     the large ones, ``--large-sources`` prints them)
 Writes benchmarks/results/diagnose_independent.json and prints markdown tables.
 """
 
@@ -50,6 +54,8 @@ N_VALIDATION_LAST = 287
 DEVELOPMENT = [i for i in range(N_VALIDATION_LAST + 1) if not gen.is_validation_seed(1000 + i)]
 VALIDATION = [i for i in range(N_VALIDATION_LAST + 1) if gen.is_validation_seed(1000 + i)]
 N_CASES = len(DEVELOPMENT)
+#: side of the halves' scenes on the 0.5 m grid, px (64 m)
+SAT_PX = 128
 #: development extension recipes: (forced effects, Q range or None for the full range).
 #: "noise": sensor noise under JPEG and with moved objects at low Q (the validation
 #: half's largest group of misses), and the same without noise (false-claim checks).
@@ -173,12 +179,28 @@ def main() -> None:
                          "recipes")
     ap.add_argument("--extension-cases", type=int, default=24,
                     help="number of extension cases (seeds 5000 ...)")
+    ap.add_argument("--sat-px", type=int, default=SAT_PX,
+                    help=f"scene side on the 0.5 m grid, px (default {SAT_PX}; any other "
+                         "value only with --indices and --out elsewhere)")
+    ap.add_argument("--large-sources", type=int, metavar="PX",
+                    help="print the development indices whose source holds a PX-pixel scene "
+                         "and exit")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"
                                          / "diagnose_independent.json"))
     args = ap.parse_args()
     sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
     if not sources:
         sys.exit(f"no real images under {REAL}; set GEOSIM_REALDATA")
+    if args.large_sources:
+        big = {s.name for s in sources if gen.source_sat_px(s) >= args.large_sources}
+        print(",".join(str(i) for i in DEVELOPMENT
+                       if gen.source_of(i, sources).name in big))
+        return None
+    halves_file = Path(args.out).resolve() == (
+        ROOT / "benchmarks" / "results" / "diagnose_independent.json").resolve()
+    if args.sat_px != SAT_PX and (not args.indices or halves_file):
+        sys.exit("--sat-px: give --indices and --out (the halves' results file holds "
+                 f"{SAT_PX} px scenes only)")
     if args.extension:
         n_ext = (gen.EXTENSION_SEEDS[1] - gen.EXTENSION_SEEDS[0] + 1
                  - EXTENSION_SEED_OFFSET[args.extension])
@@ -199,12 +221,14 @@ def main() -> None:
             sys.exit("--indices: development cases only (0-255)")
         idx = args.indices
     t0 = time.time()
-    _write(args.out, run(idx, sources), sources, t0,
-           "1000 + i; development 1000-1255, validation 1256-1287 (round 8)")
+    sat_px = args.sat_px
+    _write(args.out, run(idx, sources, (lambda k: {"sat_px": sat_px}) if sat_px != SAT_PX
+                         else None), sources, t0,
+           "1000 + i; development 1000-1255, validation 1256-1287 (round 8)", sat_px=sat_px)
 
 
 def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
-           seeds: str) -> None:
+           seeds: str, sat_px: int = 128) -> None:
     halves = {h: gen.score([r for r in rows if r["split"] == h])
               for h in ("development", "validation", "extension")
               if any(r["split"] == h for r in rows)}
@@ -212,7 +236,7 @@ def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0:
            "setup": {"phi": gen.PHI, "q_range": gen.Q_RANGE, "ranges": gen.RANGES,
                      "sources": [{"name": s.name, "gsd_m": s.gsd_m, "note": s.note}
                                  for s in sources],
-                     "n_cases": len(rows), "sat_px": 128, "seeds": seeds,
+                     "n_cases": len(rows), "sat_px": sat_px, "seeds": seeds,
                      "extension_recipes": {k: [[list(e), q] for e, q in v]
                                            for k, v in EXTENSION_RECIPES.items()}}}
     p = Path(path)
