@@ -246,3 +246,24 @@ def test_detector_named_by_the_exact_model(realdata, samples_dir):
     pitch = row["claimed"]["detector_integration"]["pitch_px"]
     assert abs(pitch - case.truth["detector_integration"]["pitch_px"]) < 0.25, pitch
     assert row["se_refined"] <= 0.5 * row["se_base"], (row["se_base"], row["se_refined"])
+
+
+@pytest.mark.parametrize("gsd_m, side_px", [(0.1, 150), (0.05, 333)])
+def test_source_sat_px_is_the_largest_scene_fine_window_cuts(tmp_path, gsd_m, side_px):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    path = tmp_path / "src.tif"
+    img = np.random.default_rng(0).integers(0, 255, (3, side_px, side_px), dtype=np.uint8)
+    with rasterio.open(path, "w", driver="GTiff", width=side_px, height=side_px, count=3,
+                       dtype="uint8", crs="EPSG:32611",
+                       transform=from_origin(0, 0, gsd_m, gsd_m)) as ds:
+        ds.write(img)
+    src = gen.Source(name="t", path=path, gsd_m=gsd_m)
+    sat = gen.source_sat_px(src, margin_px=12)
+    # side on the fine (0.05 m) grid, in whole product pixels, less both margins
+    assert sat == int(side_px * max(1.0, gsd_m / 0.05)) // gen.PHI - 24
+    ground = gen.fine_window(src, np.random.default_rng(1), sat_px=sat, margin_px=12)
+    assert ground.shape[-1] == (sat + 24) * gen.PHI
+    bigger = gen.fine_window(src, np.random.default_rng(1), sat_px=sat + 1, margin_px=12)
+    assert bigger.shape[-1] < (sat + 1 + 24) * gen.PHI   # the source holds no more
