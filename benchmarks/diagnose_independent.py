@@ -228,7 +228,7 @@ def main() -> None:
 
 
 def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
-           seeds: str, sat_px: int = 128) -> None:
+           seeds: str, sat_px: int = SAT_PX) -> None:
     halves = {h: gen.score([r for r in rows if r["split"] == h])
               for h in ("development", "validation", "extension")
               if any(r["split"] == h for r in rows)}

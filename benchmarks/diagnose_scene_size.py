@@ -43,17 +43,19 @@ def fmt(s: dict[str, Any]) -> str:
 
 def main() -> None:
     big_doc = json.loads(Path(sys.argv[1]).read_text())
-    small = {r["case"]: r for r in json.loads(HALVES.read_text())["cases"]}
+    halves = json.loads(HALVES.read_text())
+    small = {r["case"]: r for r in halves["cases"]}
+    px0 = halves["setup"]["sat_px"]
     pairs = [(small[r["case"]], r) for r in big_doc["cases"] if r["case"] in small]
     same = [(a, b) for a, b in pairs if same_draw(a, b)]
     px = big_doc["setup"]["sat_px"]
     print(f"{len(pairs)} cases, {len(same)} paired (same Q and effects)")
-    print(f"  128 px: {fmt(gen.score([a for a, _ in same]))}")
+    print(f"  {px0} px: {fmt(gen.score([a for a, _ in same]))}")
     print(f"  {px} px: {fmt(gen.score([b for _, b in same]))}")
     for a, b in same:
         if set(a["claimed"]) != set(b["claimed"]) or set(b["claimed"]) != set(b["truth"]):
             print(f"  {a['case']} {a['source']} Q {a['q_true']:.2f} truth {sorted(a['truth'])}"
-                  f" | 128: {sorted(a['claimed'])} {a['se_base']:.3f}->{a['se_refined']:.3f}"
+                  f" | {px0}: {sorted(a['claimed'])} {a['se_base']:.3f}->{a['se_refined']:.3f}"
                   f" | {px}: {sorted(b['claimed'])} {b['se_base']:.3f}->{b['se_refined']:.3f}")
 
 
