@@ -188,6 +188,11 @@ def main() -> None:
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"
                                          / "diagnose_independent.json"))
     args = ap.parse_args()
+    halves_file = Path(args.out).resolve() == (
+        ROOT / "benchmarks" / "results" / "diagnose_independent.json").resolve()
+    if args.sat_px != SAT_PX and (not args.indices or halves_file):
+        sys.exit("--sat-px: give --indices and --out (the halves' results file holds "
+                 f"{SAT_PX} px scenes only)")
     sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
     if not sources:
         sys.exit(f"no real images under {REAL}; set GEOSIM_REALDATA")
@@ -196,11 +201,6 @@ def main() -> None:
         print(",".join(str(i) for i in DEVELOPMENT
                        if gen.source_of(i, sources).name in big))
         return None
-    halves_file = Path(args.out).resolve() == (
-        ROOT / "benchmarks" / "results" / "diagnose_independent.json").resolve()
-    if args.sat_px != SAT_PX and (not args.indices or halves_file):
-        sys.exit("--sat-px: give --indices and --out (the halves' results file holds "
-                 f"{SAT_PX} px scenes only)")
     if args.extension:
         n_ext = (gen.EXTENSION_SEEDS[1] - gen.EXTENSION_SEEDS[0] + 1
                  - EXTENSION_SEED_OFFSET[args.extension])

@@ -267,3 +267,18 @@ def test_source_sat_px_is_the_largest_scene_fine_window_cuts(tmp_path, gsd_m, si
     assert ground.shape[-1] == (sat + 24) * gen.PHI
     bigger = gen.fine_window(src, np.random.default_rng(1), sat_px=sat + 1, margin_px=12)
     assert bigger.shape[-1] < (sat + 1 + 24) * gen.PHI   # the source holds no more
+
+
+@pytest.mark.parametrize("extra", [[], ["--indices", "4,6"]])
+def test_sat_px_never_writes_the_halves_file(tmp_path, extra):
+    import os
+    import subprocess
+
+    halves = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
+    before = halves.read_bytes()
+    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "diagnose_independent.py"),
+                          "--sat-px", "256", *extra], capture_output=True, text=True,
+                         timeout=120, env={**os.environ, "GEOSIM_REALDATA": str(tmp_path)})
+    assert res.returncode != 0
+    assert "--sat-px: give --indices and --out" in res.stderr
+    assert halves.read_bytes() == before
