@@ -116,12 +116,18 @@ def _read(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return img, valid
 
 
+def fine_scale(src: Source) -> float:
+    """Source pixels -> 0.05 m pixels: coarser sources are upsampled by this factor, finer
+    ones used pixel for pixel (1.0)."""
+    return 1.0 if src.gsd_m < FINE_GSD_M else src.gsd_m / FINE_GSD_M
+
+
 def fine_window(src: Source, rng: np.random.Generator, *, sat_px: int, margin_px: int
                 ) -> np.ndarray:
     """A random (≥ 98 % valid) window of the source on the 0.05 m grid, (3, n, n) float,
     n = (sat_px + 2 margin_px) * PHI (smaller sources give what they have)."""
     img, valid = _read(src.path)
-    scale = 1.0 if src.gsd_m < FINE_GSD_M else src.gsd_m / FINE_GSD_M
+    scale = fine_scale(src)
     need_fine = (sat_px + 2 * margin_px) * PHI
     need_nat = int(np.ceil(need_fine / scale))
     rows, cols = img.shape[1:]
@@ -449,8 +455,7 @@ def source_sat_px(src: Source, margin_px: int = 12) -> int:
 
     with rasterio.open(src.path) as ds:
         n_nat = min(ds.height, ds.width)
-    scale = 1.0 if src.gsd_m < FINE_GSD_M else src.gsd_m / FINE_GSD_M
-    return int(n_nat * scale) // PHI - 2 * margin_px
+    return int(n_nat * fine_scale(src)) // PHI - 2 * margin_px
 
 
 def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,

@@ -48,6 +48,8 @@ import diagnose_generator as gen  # noqa: E402
 
 REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
 SAMPLES = ROOT / "data" / "samples"
+#: the halves' results (128 px scenes); other runs write elsewhere
+HALVES_FILE = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
 N_VALIDATION_LAST = 287
 #: case indices (seed 1000 + i) of the two halves (round 8: development 0-255,
 #: validation 256-287)
@@ -185,11 +187,9 @@ def main() -> None:
     ap.add_argument("--large-sources", type=int, metavar="PX",
                     help="print the development indices whose source holds a PX-pixel scene "
                          "and exit")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"
-                                         / "diagnose_independent.json"))
+    ap.add_argument("--out", default=str(HALVES_FILE))
     args = ap.parse_args()
-    halves_file = Path(args.out).resolve() == (
-        ROOT / "benchmarks" / "results" / "diagnose_independent.json").resolve()
+    halves_file = Path(args.out).resolve() == HALVES_FILE.resolve()
     if args.sat_px != SAT_PX and (not args.indices or halves_file):
         sys.exit("--sat-px: give --indices and --out (the halves' results file holds "
                  f"{SAT_PX} px scenes only)")
@@ -206,8 +206,7 @@ def main() -> None:
                  - EXTENSION_SEED_OFFSET[args.extension])
         if not 0 < args.extension_cases <= n_ext:
             sys.exit(f"--extension-cases: 1-{n_ext}")
-        if Path(args.out).resolve().parent == (ROOT / "benchmarks" / "results").resolve() \
-                and Path(args.out).name == "diagnose_independent.json":
+        if halves_file:
             sys.exit("--extension: give --out (the halves' results file is not overwritten)")
         recipe = args.extension
         return _write(args.out, run(list(range(args.extension_cases)), sources,

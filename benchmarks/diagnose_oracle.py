@@ -82,8 +82,7 @@ def main() -> None:
     ap.add_argument("--indices", required=True,
                     type=lambda s: [int(v) for v in s.split(",")],
                     help="development case indices (0-159)")
-    ap.add_argument("--baseline", default=str(ROOT / "benchmarks" / "results"
-                                              / "diagnose_independent.json"),
+    ap.add_argument("--baseline", default=str(di.HALVES_FILE),
                     help="a diagnose_independent result with se_base / se_refined per case")
     ap.add_argument("--out", default=None, help="JSON output (default: print only)")
     args = ap.parse_args()

@@ -23,8 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_generator as gen  # noqa: E402
-
-HALVES = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
+from diagnose_independent import HALVES_FILE  # noqa: E402
 
 
 def same_draw(a: dict[str, Any], b: dict[str, Any]) -> bool:
@@ -43,7 +42,7 @@ def fmt(s: dict[str, Any]) -> str:
 
 def main() -> None:
     big_doc = json.loads(Path(sys.argv[1]).read_text())
-    halves = json.loads(HALVES.read_text())
+    halves = json.loads(HALVES_FILE.read_text())
     small = {r["case"]: r for r in halves["cases"]}
     px0 = halves["setup"]["sat_px"]
     pairs = [(small[r["case"]], r) for r in big_doc["cases"] if r["case"] in small]
