@@ -295,17 +295,17 @@ def luma(img: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- cases
-# Splits by seed. Round 8 (this one): the validation half is seeds 1256-1287, drawn only
-# for round 8's final report; every seed of 1000-1255 is development (1000-1063: round 1's
+# Splits by seed. Round 9 (this one): the validation half is seeds 1288-1319, drawn only
+# for round 9's final report; every seed of 1000-1287 is development (1000-1063: round 1's
 # two halves, seen while tuning; odd 1065-1127: round 2's validation half; even 1064-1126:
 # round 3's validation half; 1128-1159: round 4's; 1160-1191: round 5's; 1192-1223: round
-# 6's; 1224-1255: round 7's, each seen in its round's final report).
-VALIDATION_FIRST_SEED = 1256
-VALIDATION_LAST_SEED = 1287
+# 6's; 1224-1255: round 7's; 1256-1287: round 8's, each seen in its round's final report).
+VALIDATION_FIRST_SEED = 1288
+VALIDATION_LAST_SEED = 1319
 
 
 def is_validation_seed(seed: int) -> bool:
-    """Whether ``seed`` belongs to the (round 8) validation half."""
+    """Whether ``seed`` belongs to the (round 9) validation half."""
     return VALIDATION_FIRST_SEED <= seed <= VALIDATION_LAST_SEED
 
 
@@ -466,7 +466,7 @@ def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: in
     """Case ``i`` (seed base_seed + i): source round robin; every ``control_every``-th a
     control (the paper's model only); else 1-3 effects. ``force``: exactly these effects
     (random parameters), for extra development cases of one kind (seeds 6000-6999 for
-    blur effects; the seeds 1000-1287 are drawn without it).
+    blur effects; the seeds 1000-1319 are drawn without it).
 
     ``effects`` forces the effect set (parameters still drawn from RANGES, no effect count
     drawn) and ``q_range`` the range Q is drawn from: only for the development extension
@@ -552,9 +552,38 @@ def spectral_error(sim: np.ndarray, real: np.ndarray, *, block: int = 32, n_radi
     return float(np.sqrt(np.mean(np.square(errs))))
 
 
+def stated_untestable(row: dict[str, Any]) -> set[str]:
+    """The true effects of ``row`` that the tool's own ``detection_limits`` (recorded in the
+    row) declare absorbed into Q at its delivered Q: a limit of None (never testable), or
+    the true parameter on the limit's absorbed side."""
+    out = set()
+    for name, lim in (row.get("detection_limits") or {}).items():
+        if name not in row["truth"]:
+            continue
+        value = row["truth"][name][lim["param"]]
+        if (lim["limit"] is None or (value < lim["limit"] if lim["absorbed_side"] == "below"
+                                     else value > lim["limit"])):
+            out.add(name)
+    return out
+
+
+def _testable_recall(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """score()'s detection-limit part (rows without limits count every effect testable)."""
+    pairs = [(set(r["truth"]), set(r["claimed"]), stated_untestable(r)) for r in rows]
+    tp = sum(len((t - u) & c) for t, c, u in pairs)
+    fn = sum(len(t - u - c) for t, c, u in pairs)
+    return {"recall_testable": tp / (tp + fn) if tp + fn else 1.0,
+            "stated_untestable": sum(len(u) for _, _, u in pairs),
+            "stated_untestable_found": sum(len(u & c) for _, c, u in pairs),
+            "rows_with_limits": sum(1 for r in rows if r.get("detection_limits"))}
+
+
 def score(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Exact-name precision/recall, clean controls, spectral targets (rows: truth, claimed,
-    se_base, se_refined)."""
+    se_base, se_refined); and, where the rows record the tool's detection limits, the
+    recall over the true effects it did not declare untestable (``recall_testable``) and
+    how many it declared untestable (``stated_untestable``) but found anyway
+    (``stated_untestable_found``: each one shows the statement too cautious)."""
     tp = sum(len(set(r["truth"]) & set(r["claimed"])) for r in rows)
     fp = sum(len(set(r["claimed"]) - set(r["truth"])) for r in rows)
     fn = sum(len(set(r["truth"]) - set(r["claimed"])) for r in rows)
@@ -587,5 +616,6 @@ def score(rows: list[dict[str, Any]]) -> dict[str, Any]:
                                         if r["se_refined"] <= 0.5 * r["se_base"]),
         "refined_above_baseline": sum(1 for r in rows if r["se_refined"] > r["se_base"]),
         "errors": sum(1 for r in rows if r.get("error")),
+        **_testable_recall(rows),
         "per_effect": per,
     }

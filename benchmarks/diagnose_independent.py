@@ -4,12 +4,15 @@ The "real" satellite scenes come from ``benchmarks/diagnose_generator.py``, whic
 imports nothing from geosim (each effect written again from its physics, blur applied
 on the 0.05 m grid before sampling). Cases come from every real image in
 ``../shared/realdata`` and the sample site, phi = 10, Q from 0.8 to 4.5, 0-3 effects,
-every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1255 (thresholds are
+every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1287 (thresholds are
 tuned on these only; each earlier round's validation half was seen in its final report, so
-it joined development). Validation half (round 8, fresh): the 32 seeds 1256-1287, run only
+it joined development). Validation half (round 9, fresh): the 32 seeds 1288-1319, run only
 for the final report. The diagnosis sees the
 UAV image and the scene, calibrates Q by Laplacian variance, and is scored by the
-benchmark's own measures (exact effect names; its own spectral error).
+benchmark's own measures (exact effect names; its own spectral error). Each row also
+records the tool's ``detection_limits`` (the isotropic blurs it states would be absorbed
+into Q at its delivered Q); the score adds the recall over the true effects it did not
+declare untestable, and how many it declared untestable but found anyway.
 
 Development extension (tuning allowed): seeds 5000-5999, cases with a forced effect set and
 Q range drawn from ``EXTENSION_RECIPES`` (case k: seed 5000 + offset + k, recipe k mod its
@@ -20,6 +23,10 @@ Run: python benchmarks/diagnose_independent.py [--cases N] [--only development|v
 (--cases N: the first N development cases; the validation half is always all 32.)
      python benchmarks/diagnose_independent.py --extension noise|isoblur [--extension-cases K]
      --out /tmp/x.json   (the extension only)
+     python benchmarks/diagnose_independent.py --merge OLD.json NEW.json [--out FILE]
+     (one results file from several runs: rows by case, later files win; each row's split
+     from its seed; rows from before 24 Nov get the detection limits the tool states at
+     their delivered Q)
      python benchmarks/diagnose_independent.py --indices I,J,... --sat-px 384 --out /tmp/y.json
      (the same development cases on larger scenes: how much the scene's size limits the
      diagnosis; sources smaller than the scene give what they hold, so pick the indices of
@@ -50,9 +57,11 @@ REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata
 SAMPLES = ROOT / "data" / "samples"
 #: the halves' results (128 px scenes); other runs write elsewhere
 HALVES_FILE = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
-N_VALIDATION_LAST = 287
-#: case indices (seed 1000 + i) of the two halves (round 8: development 0-255,
-#: validation 256-287)
+SEEDS_NOTE = (f"1000 + i; development 1000-{gen.VALIDATION_FIRST_SEED - 1}, validation "
+              f"{gen.VALIDATION_FIRST_SEED}-{gen.VALIDATION_LAST_SEED} (round 9)")
+N_VALIDATION_LAST = 319
+#: case indices (seed 1000 + i) of the two halves (round 9: development 0-287,
+#: validation 288-319)
 DEVELOPMENT = [i for i in range(N_VALIDATION_LAST + 1) if not gen.is_validation_seed(1000 + i)]
 VALIDATION = [i for i in range(N_VALIDATION_LAST + 1) if gen.is_validation_seed(1000 + i)]
 N_CASES = len(DEVELOPMENT)
@@ -108,6 +117,7 @@ def diagnose_case(case: gen.Case) -> dict[str, Any]:
     return {"case": case.name, "seed": case.seed, "split": case.split, "source": case.source,
             "q_true": case.q, "q_base": q_base, "q_refined": s["refined"]["q"],
             "truth": case.truth, "claimed": claimed, "alternatives": alts,
+            "detection_limits": s["detection_limits"],
             # both simulations as delivered: whole DN, like the scene
             "se_base": gen.spectral_error(np.rint(d.baseline), case.real),
             "se_refined": gen.spectral_error(np.rint(d.refined), case.real),
@@ -165,7 +175,10 @@ def fmt_summary(name: str, s: dict[str, Any]) -> str:
             f"{s['family_precision']:.2f} / {s['family_recall']:.2f}; controls clean "
             f"{s['controls_clean']}/{s['n_controls']}; refined ≤ ½ baseline "
             f"{s['refined_le_half_baseline']}/{s['effect_cases']}; refined above baseline "
-            f"{s['refined_above_baseline']}/{s['n_cases']}")
+            f"{s['refined_above_baseline']}/{s['n_cases']}; recall over effects not stated "
+            f"untestable {s['recall_testable']:.2f} ({s['stated_untestable']} stated "
+            f"untestable, {s['stated_untestable_found']} of them found; limits in "
+            f"{s['rows_with_limits']}/{s['n_cases']} rows)")
 
 
 def main() -> None:
@@ -174,7 +187,7 @@ def main() -> None:
                     help="number of development cases (the first N)")
     ap.add_argument("--only", choices=("development", "validation"))
     ap.add_argument("--indices", type=lambda t: [int(v) for v in t.split(",")],
-                    help="comma-separated development case indices (0-255), "
+                    help=f"comma-separated development case indices (0-{DEVELOPMENT[-1]}), "
                          "e.g. to rerun the failures")
     ap.add_argument("--extension", choices=sorted(EXTENSION_RECIPES),
                     help="run only the development extension (seeds 5000-5999) with these "
@@ -187,8 +200,13 @@ def main() -> None:
     ap.add_argument("--large-sources", type=int, metavar="PX",
                     help="print the development indices whose source holds a PX-pixel scene "
                          "and exit")
+    ap.add_argument("--merge", nargs="+", type=Path, metavar="FILE",
+                    help="merge these results files (rows by case, later files win) into "
+                         "--out and exit")
     ap.add_argument("--out", default=str(HALVES_FILE))
     args = ap.parse_args()
+    if args.merge:
+        return merge(args.merge, args.out)
     halves_file = Path(args.out).resolve() == HALVES_FILE.resolve()
     if args.sat_px != SAT_PX and (not args.indices or halves_file):
         sys.exit("--sat-px: give --indices and --out (the halves' results file holds "
@@ -217,17 +235,50 @@ def main() -> None:
     idx = {"development": dev, "validation": VALIDATION}.get(args.only, dev + VALIDATION)
     if args.indices:
         if set(args.indices) - set(DEVELOPMENT):
-            sys.exit("--indices: development cases only (0-255)")
+            sys.exit(f"--indices: development cases only (0-{DEVELOPMENT[-1]})")
         idx = args.indices
     t0 = time.time()
     sat_px = args.sat_px
     _write(args.out, run(idx, sources, (lambda k: {"sat_px": sat_px}) if sat_px != SAT_PX
                          else None), sources, t0,
-           "1000 + i; development 1000-1255, validation 1256-1287 (round 8)", sat_px=sat_px)
+           SEEDS_NOTE, sat_px=sat_px)
+
+
+def merge(files: list[Path], out: str) -> None:
+    """One results file from several runs of this benchmark (the halves at 128 px).
+
+    Rows are taken by case name, later files replacing earlier ones; each row's split is
+    recomputed from its seed (:func:`gen.is_validation_seed`), so a past validation half
+    becomes development when a new one is drawn. Rows written before the diagnosis stated
+    its detection limits (24 Nov) get the ones it states at their delivered Q (the same
+    function of that Q, :func:`geosim.diagnose.detection_limits.detection_limits_json`).
+    """
+    from geosim.diagnose.detection_limits import detection_limits_json
+
+    rows: dict[str, dict[str, Any]] = {}
+    notes = []
+    for f in files:
+        doc = json.loads(f.read_text())
+        if doc.get("setup", {}).get("sat_px", SAT_PX) != SAT_PX:
+            sys.exit(f"--merge: {f} holds {doc['setup']['sat_px']} px scenes, not the "
+                     f"halves' {SAT_PX} px")
+        notes.append(f"{f.name}: {len(doc['cases'])} rows")
+        rows.update({r["case"]: r for r in doc["cases"]})
+    for r in rows.values():
+        r["split"] = "validation" if gen.is_validation_seed(r["seed"]) else "development"
+        if "detection_limits" not in r and np.isfinite(r["q_refined"]):
+            r["detection_limits"] = detection_limits_json(float(r["q_refined"]))
+            r["detection_limits_restated"] = True
+    ordered = sorted(rows.values(), key=lambda r: r["seed"])
+    sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
+    # the file's seconds_total: the rows' own (not the merge's)
+    t0 = time.time() - sum(r.get("seconds_total", 0.0) for r in ordered)
+    _write(out, ordered, sources, t0, SEEDS_NOTE,
+           note="merged by --merge from " + "; ".join(notes))
 
 
 def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
-           seeds: str, sat_px: int = SAT_PX) -> None:
+           seeds: str, sat_px: int = SAT_PX, note: str | None = None) -> None:
     halves = {h: gen.score([r for r in rows if r["split"] == h])
               for h in ("development", "validation", "extension")
               if any(r["split"] == h for r in rows)}
@@ -238,6 +289,8 @@ def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0:
                      "n_cases": len(rows), "sat_px": sat_px, "seeds": seeds,
                      "extension_recipes": {k: [[list(e), q] for e, q in v]
                                            for k, v in EXTENSION_RECIPES.items()}}}
+    if note:
+        out["note"] = note
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(out, indent=1, default=float))

@@ -88,6 +88,20 @@ def test_noise_and_haze_from_independent_generator():
     assert 0.6 * true_var < got < 1.5 * true_var, (got, true_var)
 
 
+def test_detector_under_a_wide_psf_is_stated_untestable_not_absent():
+    """A 1.2 px detector box under Q 4 optics changes the in-band transfer as a ~3 % larger
+    Q would (< 1 % apart): the diagnosis cannot claim it, and diagnosis.json says so (its
+    detection limit at the delivered Q lies above 1.2 px), as does the report."""
+    truth = {"detector_integration": {"pitch_px": 1.2}}
+    claimed, se_base, se_ref, d = _run(truth, q=4.0, seed=17)
+    assert "detector_integration" not in claimed, list(claimed)
+    lim = d.summary["detection_limits"]["detector_integration"]
+    assert lim["q"] == d.summary["refined"]["q"] and lim["absorbed_side"] == "below"
+    assert lim["limit"] > 1.2, lim
+    assert se_ref <= se_base + 1e-9
+    assert f"narrower than {lim['limit']:.2f} px" in diagnosis_markdown(d.summary)
+
+
 def test_benchmark_scoring_counts_exact_names():
     rows = [{"truth": {"haze": {}}, "claimed": {"haze": {}, "sensor_noise": {}},
              "se_base": 0.4, "se_refined": 0.1},
@@ -164,6 +178,8 @@ def test_jpeg_at_high_q_is_not_called_resampling():
     out = combine_flights({"A": d.summary, "B": d.summary}, reference="A")
     (comb,) = [e for e in out["effects"] if e["name"] == "compression"]
     assert comb["votes"] == "2/2" and comb["delta_bic"] == pytest.approx(c["delta_bic"])
+    # the combined verdict states its detection limits at its own (median) Q
+    assert out["detection_limits"]["detector_integration"]["q"] == out["refined"]["q"]
     assert f"block-edge step test χ² = {c['delta_bic']:.3g}" in diagnosis_markdown(d.summary)
 
 

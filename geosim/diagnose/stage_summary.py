@@ -10,6 +10,7 @@ import numpy as np
 
 from geosim.diagnose import locate
 from geosim.diagnose.context import EvalContext
+from geosim.diagnose.detection_limits import detection_limits_json
 from geosim.diagnose.fit import fit_transfer
 from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.select import BlurSelection
@@ -39,7 +40,8 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
                  claims: list[Claim], ev: EvalContext, refined: np.ndarray,
                  withdrawn: list[dict[str, str]]) -> dict[str, Any]:
     """The JSON-able summary written to ``diagnosis.json`` (baseline, effects, refined
-    fit, ambiguities, withdrawals, candidates, co-registration, noise, settings); RMSEs
+    fit, ambiguities, detection limits at the delivered Q, withdrawals, candidates,
+    co-registration, noise, settings); RMSEs
     over ``ev.mask``, spectral errors on ``ev``'s blocks."""
     eval_mask, se_of = ev.mask, ev.spectral_error
     base_rmse = rmse(inp.base, inp.real, eval_mask)
@@ -67,6 +69,7 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
                                  "simulations as delivered (with the refined noise realisation, "
                                  "rounded to whole DN when the real scene is)"},
         "ambiguities": ambiguities,
+        "detection_limits": detection_limits_json(float(model.q)),  # type: ignore[arg-type]
         "withdrawn": withdrawn,
         "candidates_delta_bic": {k: float(v) for k, v in sel.tried.items()},
         "candidates_heldout_gain": {k: float(v) for k, v in sel.cv_gain.items()},
