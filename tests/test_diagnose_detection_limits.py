@@ -11,9 +11,13 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from geosim.diagnose.detection_limits import (DETECTABLE_DIFFERENCE, absorbed_difference,
-                                              detection_limit, detection_limits_json,
-                                              limits_markdown)
+from geosim.diagnose.detection_limits import (
+    DETECTABLE_DIFFERENCE,
+    absorbed_difference,
+    detection_limit,
+    detection_limits_json,
+    limits_markdown,
+)
 
 F = np.linspace(0.0, 0.5, 121)[1:]
 TH = np.deg2rad(np.linspace(0.0, 45.0, 10))

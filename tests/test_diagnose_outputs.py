@@ -186,3 +186,15 @@ def test_compare_with_truth_rows():
         "motion_smear"]["note"]
     assert rows["off_nadir_anisotropy"]["truth"] is None
     assert "not present" in format_truth_comparison(list(rows.values()))
+    # a missed isotropic blur is set against the detection limit the diagnosis stated
+    doc["detection_limits"] = {
+        "detector_integration": {"param": "pitch_px", "limit": 1.3, "absorbed_side": "below",
+                                 "q": 1.6},
+        "atmospheric_blur": {"param": "f0_cyc_per_px", "limit": 1.1, "absorbed_side": "above",
+                             "q": 1.6}}
+    truth["satellite"]["effects"].update(detector_integration={"pitch_px": 1.0},
+                                         atmospheric_blur={"f0_cyc_per_px": 0.4})
+    rows = {r["effect"]: r for r in compare_with_truth(doc, truth)}
+    assert rows["detector_integration"]["note"] == (
+        "below the stated detection limit pitch_px 1.30 at Q 1.60: absorbed into Q")
+    assert rows["atmospheric_blur"]["note"].startswith("missed, though beyond")

@@ -46,12 +46,30 @@ def compare_with_truth(doc: dict[str, Any], truth: dict[str, Any]) -> list[dict[
         true_eff.setdefault("scene_change", {
             "acquired": sat["acquired"], "n_cattle": sat.get("n_cattle"),
             "sun_elevation_deg": sat.get("sun", {}).get("elevation_deg")})
+    limits = doc.get("detection_limits", {})
     for name in sorted(set(true_eff) | set(found)):
         row = {"effect": name, "fitted": found.get(name), "truth": true_eff.get(name)}
         if name in alt_of:
             row["note"] = f"indistinguishable on these data from the claimed {alt_of[name]}"
+        elif row["fitted"] is None and name in limits and row["truth"]:
+            row["note"] = _limit_note(limits[name], row["truth"])
         rows.append(row)
     return rows
+
+
+def _limit_note(lim: dict[str, Any], truth: dict[str, Any]) -> str | None:
+    """Whether a missed isotropic blur's true value lies on the absorbed side of the
+    detection limit the diagnosis stated (``diagnosis.json``'s ``detection_limits``)."""
+    value = truth.get(lim["param"])
+    if value is None:
+        return None
+    where = (f"stated detection limit {lim['param']} {lim['limit']:.2f} at Q {lim['q']:.2f}"
+             if lim["limit"] is not None else f"no detection limit at Q {lim['q']:.2f}")
+    absorbed = lim["limit"] is None or (value < lim["limit"] if lim["absorbed_side"] == "below"
+                                        else value > lim["limit"])
+    if absorbed:
+        return f"below the {where}: absorbed into Q"
+    return f"missed, though beyond the {where}"
 
 
 def format_truth_comparison(rows: list[dict[str, Any]]) -> str:
