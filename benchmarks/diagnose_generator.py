@@ -555,10 +555,11 @@ def spectral_error(sim: np.ndarray, real: np.ndarray, *, block: int = 32, n_radi
 def stated_untestable(row: dict[str, Any]) -> set[str]:
     """The true effects of ``row`` that the tool's own ``detection_limits`` (recorded in the
     row) declare absorbed into Q at its delivered Q: a limit of None (never testable), or
-    the true parameter on the limit's absorbed side."""
+    the true parameter on the limit's absorbed side; an effect the tool claimed is not
+    among them (its report states no limit for it)."""
     out = set()
     for name, lim in (row.get("detection_limits") or {}).items():
-        if name not in row["truth"]:
+        if name not in row["truth"] or name in row["claimed"]:
             continue
         value = row["truth"][name][lim["param"]]
         if (lim["limit"] is None or (value < lim["limit"] if lim["absorbed_side"] == "below"

@@ -81,5 +81,9 @@ def test_absorbs_and_json():
     assert d["limit"] == pytest.approx(lim.limit)
     text = "\n".join(limits_markdown(doc))
     assert f"narrower than {lim.limit:.2f} px" in text and "What this scene cannot test" in text
+    # a claimed blur gets no "cannot test" line (the data showed it)
+    only_atm = "\n".join(limits_markdown(doc, claimed=["detector_integration"]))
+    assert "detector box" not in only_atm and "atmospheric blur" in only_atm
+    assert limits_markdown(doc, claimed=list(doc)) == []
     with pytest.raises(ValueError, match="no detection limit for 'haze'"):
         detection_limit(2.0, "haze")

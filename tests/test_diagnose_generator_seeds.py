@@ -94,3 +94,5 @@ def test_stated_untestable_reads_the_rows_limits():
     s = gen.score([row])
     assert (s["recall_testable"], s["stated_untestable"], s["rows_with_limits"]) == (0.0, 1, 1)
     assert s["recall"] == 0.0 and s["stated_untestable_found"] == 0
+    row["claimed"] = {"atmospheric_blur": {}}   # claimed: the report states no limit for it
+    assert gen.stated_untestable(row) == set()

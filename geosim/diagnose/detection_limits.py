@@ -19,6 +19,7 @@ Pure numerics (no I/O); the transfers are geosim's own (:mod:`geosim.physics.otf
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -203,11 +204,14 @@ def detection_limits_json(q: float) -> dict[str, dict[str, Any]]:
     return {lim.name: lim.to_json() for lim in detection_limits(q)}
 
 
-def limits_markdown(limits: dict[str, dict[str, Any]]) -> list[str]:
-    """The report's lines on what the scene cannot test (from ``detection_limits``)."""
-    if not limits:
+def limits_markdown(limits: dict[str, dict[str, Any]],
+                    claimed: Iterable[str] = ()) -> list[str]:
+    """The report's lines on what the scene cannot test (from ``detection_limits``); a blur
+    the diagnosis claimed is left out (the data showed it, whatever its fitted width)."""
+    shown = [lim for name, lim in limits.items() if name not in set(claimed)]
+    if not shown:
         return []
     return (["\n## What this scene cannot test\n"]
-            + [f"- {lim['note']}." for lim in limits.values()]
+            + [f"- {lim['note']}." for lim in shown]
             + ["\nSuch a blur is not claimed whether or not the satellite has it; the "
                "refitted Q then includes it."])

@@ -56,7 +56,7 @@ def diagnosis_markdown(s: dict[str, Any]) -> str:
         lines.append("\n## What the data cannot decide\n")
         for a in s["ambiguities"]:
             lines.append(f"- {a['note']}.")
-    lines += limits_markdown(s.get("detection_limits", {}))
+    lines += limits_markdown(s.get("detection_limits", {}), claimed)
     n_sc = sum(1 for e in s["effects"] if e["name"] == "scene_change")
     lines.append("\n## Where\n")
     lines.append(f"{s.get('n_regions', 0)} regions of significant mismatch are in "
@@ -136,7 +136,7 @@ def combined_markdown(doc: dict[str, Any], per: dict[str, dict[str, Any]],
                  f"{rf['physical_q_range'][1]} of real cameras. Median RMSE {b['rmse']:.2f} → "
                  f"{rf['rmse']:.2f} DN; median spectral error {b['spectral_error']:.3f} → "
                  f"{rf['spectral_error']:.3f}.")
-    lines += limits_markdown(doc.get("detection_limits", {}))
+    lines += limits_markdown(doc.get("detection_limits", {}), [e["name"] for e in sat])
     lines.append(f"\n![{COMBINED_PLOT}]({COMBINED_PLOT})\n")
     lines.append("\n## Per flight\n")
     lines.append("| flight | baseline Q → refined Q | claimed | RMSE DN | spectral error |")
