@@ -29,7 +29,7 @@ from scipy.optimize import minimize_scalar
 from geosim.physics import otf
 
 __all__ = ["DETECTABLE_DIFFERENCE", "DetectionLimit", "absorbed_difference",
-           "detection_limit", "detection_limits", "detection_limits_json",
+           "absorbed_by", "detection_limit", "detection_limits", "detection_limits_json",
            "limits_markdown", "ISOTROPIC_LIMITS"]
 
 #: largest |transfer − best g · OTF(Q')| over the band (fraction of unit transfer) that the
@@ -104,22 +104,29 @@ class DetectionLimit:
 
     def absorbs(self, value: float) -> bool:
         """Whether a blur with parameter ``value`` is absorbed into Q (not testable)."""
-        if self.limit is None:
-            return True
-        return value < self.limit if self.absorbed_side == "below" else value > self.limit
+        return absorbed_by(self.to_json(), value)
 
     def to_json(self) -> dict[str, Any]:
+        level = f"{100 * DETECTABLE_DIFFERENCE:g} %"
         if self.limit is None:
             note = (f"At Q {self.q:.2f} no {self.name} in its physical range differs from a "
-                    "slightly wider optical PSF by 1 % of the transfer: it would be "
+                    f"slightly wider optical PSF by {level} of the transfer: it would be "
                     "absorbed into Q and is not tested")
         else:
             what = _blur(self.name).absorbed_words.format(v=self.limit)
             note = (f"At Q {self.q:.2f}, {what} differs from a slightly wider optical PSF "
-                    "by less than 1 % of the transfer: it would be absorbed into Q (not "
+                    f"by less than {level} of the transfer: it would be absorbed into Q (not "
                     "claimed, not excluded)")
         return {"param": self.param, "limit": self.limit, "absorbed_side": self.absorbed_side,
                 "q": self.q, "max_difference": DETECTABLE_DIFFERENCE, "note": note}
+
+
+def absorbed_by(limit: dict[str, Any], value: float) -> bool:
+    """Whether a blur with parameter ``value`` lies on the absorbed side of a stated limit
+    (an entry of ``diagnosis.json``'s ``detection_limits``; a limit of None absorbs all)."""
+    if limit["limit"] is None:
+        return True
+    return value < limit["limit"] if limit["absorbed_side"] == "below" else value > limit["limit"]
 
 
 def _best_wider_difference(target: np.ndarray, q: float) -> float:

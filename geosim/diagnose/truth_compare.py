@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from geosim.diagnose.detection_limits import absorbed_by
 from geosim.diagnose.report_markdown import fmt
 
 __all__ = ["compare_with_truth", "format_truth_comparison"]
@@ -63,11 +64,10 @@ def _limit_note(lim: dict[str, Any], truth: dict[str, Any]) -> str | None:
     value = truth.get(lim["param"])
     if value is None:
         return None
-    where = (f"stated detection limit {lim['param']} {lim['limit']:.2f} at Q {lim['q']:.2f}"
-             if lim["limit"] is not None else f"no detection limit at Q {lim['q']:.2f}")
-    absorbed = lim["limit"] is None or (value < lim["limit"] if lim["absorbed_side"] == "below"
-                                        else value > lim["limit"])
-    if absorbed:
+    if lim["limit"] is None:
+        return f"not testable at Q {lim['q']:.2f}: absorbed into Q"
+    where = f"stated detection limit {lim['param']} {lim['limit']:.2f} at Q {lim['q']:.2f}"
+    if absorbed_by(lim, value):
         return f"below the {where}: absorbed into Q"
     return f"missed, though beyond the {where}"
 
