@@ -19,8 +19,11 @@ Q range drawn from ``EXTENSION_RECIPES`` (case k: seed 5000 + offset + k, recipe
 length; offsets in ``EXTENSION_SEED_OFFSET``),
 for failure kinds the development half holds few of. They never change the halves' cases.
 
-Run: python benchmarks/diagnose_independent.py [--cases N] [--only development|validation]
-(--cases N: the first N development cases; the validation half is always all 32.)
+Run: python benchmarks/diagnose_independent.py   (both halves; writes their results file)
+     python benchmarks/diagnose_independent.py [--cases N] [--only development|validation]
+     [--indices I,J] --out FILE
+(part of the halves, written elsewhere, then --merge'd; --cases N: the first N development
+cases; the validation half is always all 32.)
      python benchmarks/diagnose_independent.py --extension noise|isoblur [--extension-cases K]
      --out /tmp/x.json   (the extension only)
      python benchmarks/diagnose_independent.py --merge OLD.json NEW.json [--out FILE]
@@ -211,6 +214,9 @@ def main() -> None:
     if args.sat_px != SAT_PX and (not args.indices or halves_file):
         sys.exit("--sat-px: give --indices and --out (the halves' results file holds "
                  f"{SAT_PX} px scenes only)")
+    if halves_file and (args.only or args.indices or args.cases != N_CASES):
+        sys.exit("--only, --indices and --cases run part of the halves: give --out, then "
+                 "--merge that file into the halves' results file")
     sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
     if not sources:
         sys.exit(f"no real images under {REAL}; set GEOSIM_REALDATA")

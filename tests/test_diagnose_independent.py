@@ -285,16 +285,23 @@ def test_source_sat_px_is_the_largest_scene_fine_window_cuts(tmp_path, gsd_m, si
     assert bigger.shape[-1] < (sat + 1 + 24) * gen.PHI   # the source holds no more
 
 
-@pytest.mark.parametrize("extra", [[], ["--indices", "4,6"]])
-def test_sat_px_never_writes_the_halves_file(tmp_path, extra):
+@pytest.mark.parametrize("extra, message", [
+    (["--sat-px", "256"], "--sat-px: give --indices and --out"),
+    (["--sat-px", "256", "--indices", "4,6"], "--sat-px: give --indices and --out"),
+    (["--only", "validation"], "run part of the halves: give --out"),
+    (["--indices", "4,6"], "run part of the halves: give --out"),
+    (["--cases", "3"], "run part of the halves: give --out")])
+def test_partial_runs_never_write_the_halves_file(tmp_path, extra, message):
+    """Only a full run of both halves writes their results file (a part of them would
+    replace every other row); the others need --out, and --merge joins them."""
     import os
     import subprocess
 
     halves = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
     before = halves.read_bytes()
     res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "diagnose_independent.py"),
-                          "--sat-px", "256", *extra], capture_output=True, text=True,
+                          *extra], capture_output=True, text=True,
                          timeout=120, env={**os.environ, "GEOSIM_REALDATA": str(tmp_path)})
     assert res.returncode != 0
-    assert "--sat-px: give --indices and --out" in res.stderr
+    assert message in res.stderr
     assert halves.read_bytes() == before
