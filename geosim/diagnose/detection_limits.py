@@ -11,10 +11,11 @@ is below what the diagnosis resolves.
 
 The level (1 % of the transfer) was set on the independent benchmark's development half
 (``benchmarks/diagnose_independent.py``, seeds 1000–1255): every true detector box the
-diagnosis found differed from a wider PSF by ≥ 1.1 %, every one it missed without another
-blur beside it by ≤ 0.9 % (docs/diagnosis.md, round 9).
+diagnosis found differed from a wider PSF by ≥ 1.1 %, every one it missed with no other
+effect beside it by < 0.9 % (docs/diagnosis.md, round 9).
 
-Pure numerics (no I/O); the transfers are geosim's own (:mod:`geosim.physics.otf`).
+Pure numerics (no I/O); the blurs' transfers and parameter ranges are the diagnosis's own
+effects (:mod:`geosim.diagnose.effects`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from geosim.diagnose.effects import ParamSpec, get_effect
 from geosim.physics import otf
 
 __all__ = ["DETECTABLE_DIFFERENCE", "DetectionLimit", "absorbed_difference",
@@ -48,29 +50,30 @@ _W = np.broadcast_to(_F, _FY.shape)
 
 @dataclass(frozen=True)
 class _Blur:
-    """An isotropic blur: its parameter, its physical search range, and which end of it
-    is the weaker blur (the side that is absorbed)."""
+    """An isotropic blur: which end of its parameter's physical range is the weaker blur
+    (the side that is absorbed), and that side in words. Its parameter, range and transfer
+    are the diagnosis's own (:func:`geosim.diagnose.effects.get_effect`)."""
 
     name: str
-    param: str
-    lo: float
-    hi: float
     weaker_is_low: bool
     #: the absorbed side in words, ``{v}`` the limit
     absorbed_words: str
 
+    @property
+    def spec(self) -> ParamSpec:
+        (spec,) = get_effect(self.name).params
+        return spec
+
     def transfer(self, value: float) -> np.ndarray:
-        if self.name == "detector_integration":
-            return otf.detector_otf(_FY, _FX, pitch_px=value)
-        return otf.atmospheric_otf(_FY, _FX, f0_cyc_per_px=value)
+        return get_effect(self.name).transfer(_FY, _FX, **{self.spec.name: value})
 
 
 #: the isotropic blurs the transfer fit claims by name (resampling is found by its
 #: aliasing as well, so a transfer limit does not bound it)
 ISOTROPIC_LIMITS = (
-    _Blur("detector_integration", "pitch_px", 0.2, 3.0, weaker_is_low=True,
+    _Blur("detector_integration", weaker_is_low=True,
           absorbed_words="a detector box (detector_integration) narrower than {v:.2f} px"),
-    _Blur("atmospheric_blur", "f0_cyc_per_px", 0.05, 3.0, weaker_is_low=False,
+    _Blur("atmospheric_blur", weaker_is_low=False,
           absorbed_words="an atmospheric blur (atmospheric_blur) with f0 above {v:.2f} "
                          "cycles/px"),
 )
@@ -104,7 +107,7 @@ class DetectionLimit:
 
     def absorbs(self, value: float) -> bool:
         """Whether a blur with parameter ``value`` is absorbed into Q (not testable)."""
-        return absorbed_by(self.to_json(), value)
+        return _absorbed(self.limit, self.absorbed_side, value)
 
     def to_json(self) -> dict[str, Any]:
         level = f"{100 * DETECTABLE_DIFFERENCE:g} %"
@@ -121,12 +124,16 @@ class DetectionLimit:
                 "q": self.q, "max_difference": DETECTABLE_DIFFERENCE, "note": note}
 
 
+def _absorbed(limit: float | None, absorbed_side: str, value: float) -> bool:
+    if limit is None:
+        return True
+    return value < limit if absorbed_side == "below" else value > limit
+
+
 def absorbed_by(limit: dict[str, Any], value: float) -> bool:
     """Whether a blur with parameter ``value`` lies on the absorbed side of a stated limit
     (an entry of ``diagnosis.json``'s ``detection_limits``; a limit of None absorbs all)."""
-    if limit["limit"] is None:
-        return True
-    return value < limit["limit"] if limit["absorbed_side"] == "below" else value > limit["limit"]
+    return _absorbed(limit["limit"], limit["absorbed_side"], value)
 
 
 def _best_wider_difference(target: np.ndarray, q: float) -> float:
@@ -179,16 +186,17 @@ def detection_limit(q: float, name: str, *,
     strong end; the limit is where it crosses ``level`` (to 0.5 % of the parameter).
     """
     blur = _blur(name)
-    weak, strong = (blur.lo, blur.hi) if blur.weaker_is_low else (blur.hi, blur.lo)
+    lo, hi = blur.spec.lower, blur.spec.upper
+    weak, strong = (lo, hi) if blur.weaker_is_low else (hi, lo)
     side = "below" if blur.weaker_is_low else "above"
 
     def diff(v: float) -> float:
         return absorbed_difference(q, name, v)
 
     if diff(strong) < level:
-        return DetectionLimit(name, blur.param, None, side, float(q))
+        return DetectionLimit(name, blur.spec.name, None, side, float(q))
     if diff(weak) >= level:
-        return DetectionLimit(name, blur.param, float(weak), side, float(q))
+        return DetectionLimit(name, blur.spec.name, float(weak), side, float(q))
     # bisect in log space: both parameters are scale parameters
     a, b = np.log(weak), np.log(strong)
     while abs(b - a) > 0.005:
@@ -197,7 +205,7 @@ def detection_limit(q: float, name: str, *,
             a = m
         else:
             b = m
-    return DetectionLimit(name, blur.param, float(np.exp(0.5 * (a + b))), side, float(q))
+    return DetectionLimit(name, blur.spec.name, float(np.exp(0.5 * (a + b))), side, float(q))
 
 
 def detection_limits(q: float) -> list[DetectionLimit]:
