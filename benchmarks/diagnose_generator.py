@@ -15,6 +15,16 @@ Chain for one case (fine grid = 0.05 m, product grid = 0.5 m, phi = 10)::
       -> haze / colour (per-band affine) -> Poisson-Gaussian noise -> whole DN
       -> JPEG (Pillow)
 
+Implementation variants (``make_case(..., variants=True)``, ``diagnose_independent.py
+--variants``): the same cases (same seeds, effects and parameters) with the details a
+different implementer could choose drawn per case from a stream of their own
+(:func:`draw_variant`): the atmosphere MTF's exponent n in exp(-(f/f0)^n), the cubic
+kernel of the resampling's interpolation (OpenCV's a = -0.75 or Pillow's Keys a = -0.5),
+the JPEG encoder and its chroma subsampling (Pillow 4:2:0, Pillow 4:4:4 or OpenCV
+4:2:2) and the sub-pixel shift (cubic
+spline or Fourier phase ramp). The diagnosis models one choice of each, so the variants
+measure how its claims hold on forward models it was not written against.
+
 Frequencies: cycles per fine pixel ``f``; on the product grid ``f * phi``.
 Directions: degrees clockwise from grid north (up), in [0, 180).
 """
@@ -184,10 +194,12 @@ def airy_otf(n: int, q: float) -> np.ndarray:
     return (2.0 / np.pi) * (np.arccos(nu) - nu * np.sqrt(1.0 - nu * nu))
 
 
-def atmosphere_mtf(n: int, f0_cyc_per_px: float) -> np.ndarray:
-    """exp(-(f/f0)^(5/3)), f in cycles per product pixel."""
+def atmosphere_mtf(n: int, f0_cyc_per_px: float, *, exponent: float = 5.0 / 3.0
+                   ) -> np.ndarray:
+    """exp(-(f/f0)^exponent), f in cycles per product pixel (5/3: turbulence; a variant
+    draws it from 1-2, aerosol scattering's exponential to a Gaussian)."""
     fy, fx = _freqs(n)
-    return np.exp(-(np.hypot(fy, fx) * PHI / f0_cyc_per_px) ** (5.0 / 3.0))
+    return np.exp(-(np.hypot(fy, fx) * PHI / f0_cyc_per_px) ** exponent)
 
 
 def _unit(direction_deg: float) -> tuple[float, float]:
@@ -262,6 +274,18 @@ def sample_native(img: np.ndarray, native_pitch_px: float) -> np.ndarray:
     return np.stack(out).astype(float)
 
 
+def sample_native_pillow(img: np.ndarray, native_pitch_px: float) -> np.ndarray:
+    """:func:`sample_native` with Pillow's bicubic (Keys, a = -0.5) for the interpolation
+    to the product grid instead of OpenCV's (a = -0.75)."""
+    n = img.shape[-1] // PHI
+    n_nat = int(round(n / native_pitch_px))
+    out = []
+    for b in img.astype(np.float32):
+        nat = cv2.resize(b, (n_nat, n_nat), interpolation=cv2.INTER_AREA)
+        out.append(np.asarray(Image.fromarray(nat, "F").resize((n, n), Image.BICUBIC)))
+    return np.stack(out).astype(float)
+
+
 def poisson_gaussian(img: np.ndarray, gain_dn: float, read_var_dn2: float,
                      rng: np.random.Generator) -> np.ndarray:
     """Shot noise (photon counts s/gain, scaled back) plus Gaussian read noise."""
@@ -270,13 +294,36 @@ def poisson_gaussian(img: np.ndarray, gain_dn: float, read_var_dn2: float,
     return shot + rng.normal(0.0, np.sqrt(read_var_dn2), img.shape)
 
 
-def jpeg_pillow(img: np.ndarray, quality: int) -> np.ndarray:
-    """Pillow JPEG round trip of an RGB 8-bit product (Pillow's default chroma subsampling)."""
+def jpeg_pillow(img: np.ndarray, quality: int, *, subsampling: int = -1) -> np.ndarray:
+    """Pillow JPEG round trip of an RGB 8-bit product (``subsampling`` -1: Pillow's default,
+    4:2:0; 0: 4:4:4)."""
     hwc = np.moveaxis(np.clip(np.rint(img), 0, 255).astype(np.uint8), 0, -1)
     buf = io.BytesIO()
-    Image.fromarray(hwc, "RGB").save(buf, format="JPEG", quality=int(quality))
+    Image.fromarray(hwc, "RGB").save(buf, format="JPEG", quality=int(quality),
+                                     subsampling=subsampling)
     buf.seek(0)
     return np.moveaxis(np.asarray(Image.open(buf).convert("RGB"), float), -1, 0)
+
+
+def jpeg_opencv_422(img: np.ndarray, quality: int) -> np.ndarray:
+    """OpenCV JPEG round trip of an RGB 8-bit product with 4:2:2 chroma subsampling
+    (OpenCV's default 4:2:0 gives the same pixels as Pillow's, both being libjpeg-turbo
+    with the standard tables)."""
+    bgr = np.moveaxis(np.clip(np.rint(img), 0, 255).astype(np.uint8)[::-1], 0, -1)
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(bgr),
+                           [cv2.IMWRITE_JPEG_QUALITY, int(quality),
+                            cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+                            cv2.IMWRITE_JPEG_SAMPLING_FACTOR_422])
+    if not ok:
+        raise RuntimeError("OpenCV could not encode the JPEG")
+    return np.moveaxis(cv2.imdecode(buf, cv2.IMREAD_COLOR).astype(float), -1, 0)[::-1].copy()
+
+
+def fourier_shift_fine(img: np.ndarray, dr: float, dc: float) -> np.ndarray:
+    """Sub-pixel shift by (dr, dc) fine pixels as a Fourier phase ramp (periodic)."""
+    fy, fx = _freqs(img.shape[-1])
+    ramp = np.exp(-2j * np.pi * (fy * dr + fx * dc))
+    return np.real(np.fft.ifft2(np.fft.fft2(img, axes=(-2, -1)) * ramp, axes=(-2, -1)))
 
 
 def paste_objects(img: np.ndarray, centres: np.ndarray, horiz: np.ndarray, colours: np.ndarray
@@ -295,23 +342,47 @@ def luma(img: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- cases
-# Splits by seed. Round 9 (this one): the validation half is seeds 1288-1319, drawn only
-# for round 9's final report; every seed of 1000-1287 is development (1000-1063: round 1's
+# Splits by seed. Round 10 (this one): the validation half is seeds 1320-1351, drawn only
+# for round 10's final report; every seed of 1000-1319 is development (1000-1063: round 1's
 # two halves, seen while tuning; odd 1065-1127: round 2's validation half; even 1064-1126:
 # round 3's validation half; 1128-1159: round 4's; 1160-1191: round 5's; 1192-1223: round
-# 6's; 1224-1255: round 7's; 1256-1287: round 8's, each seen in its round's final report).
-VALIDATION_FIRST_SEED = 1288
-VALIDATION_LAST_SEED = 1319
+# 6's; 1224-1255: round 7's; 1256-1287: round 8's; 1288-1319: round 9's, each seen in its
+# round's final report).
+VALIDATION_FIRST_SEED = 1320
+VALIDATION_LAST_SEED = 1351
 
 
 def is_validation_seed(seed: int) -> bool:
-    """Whether ``seed`` belongs to the (round 9) validation half."""
+    """Whether ``seed`` belongs to the (round 10) validation half."""
     return VALIDATION_FIRST_SEED <= seed <= VALIDATION_LAST_SEED
 
 
 #: development extension (tuning allowed): seeds 5000-5999, cases drawn with a forced
 #: effect set and Q range (targeted development cases; never validation)
 EXTENSION_SEEDS = (5000, 5999)
+
+
+#: the implementation choices of the benchmark's halves (the chain in the module docstring)
+DEFAULT_VARIANT: dict[str, Any] = {"atmosphere_exponent": 5.0 / 3.0,
+                                   "interpolation": "opencv_cubic", "jpeg": "pillow_420",
+                                   "shift": "spline"}
+#: what :func:`draw_variant` chooses from
+VARIANT_CHOICES: dict[str, Any] = {"atmosphere_exponent": (1.0, 2.0),
+                                   "interpolation": ("opencv_cubic", "pillow_keys"),
+                                   "jpeg": ("pillow_420", "pillow_444", "opencv_422"),
+                                   "shift": ("spline", "fourier")}
+
+
+def draw_variant(seed: int) -> dict[str, Any]:
+    """The implementation choices of case ``seed`` under ``--variants``, from a random
+    stream of their own (``default_rng([seed, 1])``), so the case's effects and parameters
+    are the same with and without them."""
+    rng = np.random.default_rng([seed, 1])
+    c = VARIANT_CHOICES
+    return {"atmosphere_exponent": float(rng.uniform(*c["atmosphere_exponent"])),
+            "interpolation": str(rng.choice(c["interpolation"])),
+            "jpeg": str(rng.choice(c["jpeg"])),
+            "shift": str(rng.choice(c["shift"]))}
 
 
 @dataclass
@@ -325,6 +396,8 @@ class Case:
     truth: dict[str, dict[str, Any]]
     uav: np.ndarray = field(repr=False)
     real: np.ndarray = field(repr=False)
+    #: implementation choices (None: :data:`DEFAULT_VARIANT`)
+    variant: dict[str, Any] | None = None
 
     @property
     def split(self) -> str:
@@ -391,8 +464,11 @@ def draw_params(rng: np.random.Generator, name: str) -> dict[str, Any]:
 
 
 def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
-           rng: np.random.Generator, *, margin_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """(uav fine image, real product) for the window inside ``margin_px`` product pixels."""
+           rng: np.random.Generator, *, margin_px: int,
+           variant: dict[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(uav fine image, real product) for the window inside ``margin_px`` product pixels;
+    ``variant``: implementation choices (:func:`draw_variant`; None: the default ones)."""
+    v = {**DEFAULT_VARIANT, **(variant or {})}
     n_fine = ground.shape[-1]
     m = margin_px * PHI
     uav_ground = ground
@@ -408,11 +484,15 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
     img = real_ground.astype(float)
     if "misregistration" in truth:
         dc, dr = truth["misregistration"]["shift_px"]   # [column, row] product pixels
-        img = np.stack([ndimage.shift(b, (dr * PHI, dc * PHI), order=3, mode="reflect")
-                        for b in img])
+        if v["shift"] == "fourier":
+            img = fourier_shift_fine(img, dr * PHI, dc * PHI)
+        else:
+            img = np.stack([ndimage.shift(b, (dr * PHI, dc * PHI), order=3, mode="reflect")
+                            for b in img])
     mtf = airy_otf(n_fine, q)
     if "atmospheric_blur" in truth:
-        mtf = mtf * atmosphere_mtf(n_fine, truth["atmospheric_blur"]["f0_cyc_per_px"])
+        mtf = mtf * atmosphere_mtf(n_fine, truth["atmospheric_blur"]["f0_cyc_per_px"],
+                                   exponent=v["atmosphere_exponent"])
     img = _filter(img, mtf)       # periodic wrap only touches the margin
     if "off_nadir_anisotropy" in truth:
         p = truth["off_nadir_anisotropy"]
@@ -423,7 +503,8 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
     if "detector_integration" in truth:
         img = detector_box(img, truth["detector_integration"]["pitch_px"])
     if "resampling" in truth:
-        sat = sample_native(img, truth["resampling"]["native_pitch_px"])
+        native = sample_native_pillow if v["interpolation"] == "pillow_keys" else sample_native
+        sat = native(img, truth["resampling"]["native_pitch_px"])
     else:
         sat = sample_bicubic(img)
     if "haze" in truth:
@@ -437,7 +518,9 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
         sat = poisson_gaussian(sat, p["gain_dn"], p["read_var_dn2"], rng)
     sat = np.clip(np.rint(sat), 0, 255)
     if "compression" in truth:
-        sat = jpeg_pillow(sat, truth["compression"]["quality"])
+        quality = truth["compression"]["quality"]
+        sat = (jpeg_opencv_422(sat, quality) if v["jpeg"] == "opencv_422"
+               else jpeg_pillow(sat, quality, subsampling=0 if v["jpeg"] == "pillow_444" else -1))
     sat = sat[:, margin_px:-margin_px, margin_px:-margin_px]
     uav = uav_ground[:, m:-m, m:-m]
     return np.clip(np.rint(uav), 0, 255).astype(np.float32), sat
@@ -462,16 +545,17 @@ def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: in
               control_every: int = 5, base_seed: int = 1000,
               force: tuple[str, ...] | None = None,
               effects: tuple[str, ...] | None = None,
-              q_range: tuple[float, float] | None = None) -> Case:
+              q_range: tuple[float, float] | None = None, variants: bool = False) -> Case:
     """Case ``i`` (seed base_seed + i): source round robin; every ``control_every``-th a
     control (the paper's model only); else 1-3 effects. ``force``: exactly these effects
     (random parameters), for extra development cases of one kind (seeds 6000-6999 for
-    blur effects; the seeds 1000-1319 are drawn without it).
+    blur effects; the seeds 1000-1351 are drawn without it).
 
     ``effects`` forces the effect set (parameters still drawn from RANGES, no effect count
     drawn) and ``q_range`` the range Q is drawn from: only for the development extension
     (seeds in EXTENSION_SEEDS, 5000-5999), so that the seed -> case mapping of the
-    benchmark halves stays."""
+    benchmark halves stays. ``variants``: render with the case's implementation choices
+    (:func:`draw_variant`) instead of the default ones; effects and parameters unchanged."""
     seed = base_seed + i
     forced = effects is not None or q_range is not None
     if forced and not EXTENSION_SEEDS[0] <= seed <= EXTENSION_SEEDS[1]:
@@ -499,9 +583,11 @@ def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: in
         truth = draw_effects(rng, n_eff, names=force)
     else:
         truth = draw_named_effects(rng, effects)
-    uav, real = render(ground, q, truth, rng, margin_px=margin_px)
+    variant = draw_variant(seed) if variants else None
+    uav, real = render(ground, q, truth, rng, margin_px=margin_px, variant=variant)
     label = f"x{seed}" if EXTENSION_SEEDS[0] <= seed <= EXTENSION_SEEDS[1] else f"c{i:02d}"
-    return Case(name=label, seed=seed, source=name, q=q, truth=truth, uav=uav, real=real)
+    return Case(name=label, seed=seed, source=name, q=q, truth=truth, uav=uav, real=real,
+                variant=variant)
 
 
 def pick_sources(all_sources: list[Source], n_sjer_each: int = 2) -> list[Source]:

@@ -4,9 +4,9 @@ The "real" satellite scenes come from ``benchmarks/diagnose_generator.py``, whic
 imports nothing from geosim (each effect written again from its physics, blur applied
 on the 0.05 m grid before sampling). Cases come from every real image in
 ``../shared/realdata`` and the sample site, phi = 10, Q from 0.8 to 4.5, 0-3 effects,
-every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1287 (thresholds are
+every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1319 (thresholds are
 tuned on these only; each earlier round's validation half was seen in its final report, so
-it joined development). Validation half (round 9, fresh): the 32 seeds 1288-1319, run only
+it joined development). Validation half (round 10, fresh): the 32 seeds 1320-1351, run only
 for the final report. The diagnosis sees the
 UAV image and the scene, calibrates Q by Laplacian variance, and is scored by the
 benchmark's own measures (exact effect names; its own spectral error). Each row also
@@ -30,6 +30,10 @@ cases; the validation half is always all 32.)
      (one results file from several runs: rows by case, later files win; each row's split
      from its seed; rows from before 24 Nov get the detection limits the tool states at
      their delivered Q)
+     python benchmarks/diagnose_independent.py --variants [--only ...] [--indices ...] --out FILE
+     (the same cases rendered with other implementation choices, drawn per case: the
+     atmosphere's MTF exponent, the resampling's cubic kernel, the JPEG encoder's chroma
+     subsampling, the shift's interpolation; ``diagnose_generator.draw_variant``)
      python benchmarks/diagnose_independent.py --indices I,J,... --sat-px 384 --out /tmp/y.json
      (the same development cases on larger scenes: how much the scene's size limits the
      diagnosis; sources smaller than the scene give what they hold, so pick the indices of
@@ -61,10 +65,10 @@ SAMPLES = ROOT / "data" / "samples"
 #: the halves' results (128 px scenes); other runs write elsewhere
 HALVES_FILE = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
 SEEDS_NOTE = (f"1000 + i; development 1000-{gen.VALIDATION_FIRST_SEED - 1}, validation "
-              f"{gen.VALIDATION_FIRST_SEED}-{gen.VALIDATION_LAST_SEED} (round 9)")
-N_VALIDATION_LAST = 319
-#: case indices (seed 1000 + i) of the two halves (round 9: development 0-287,
-#: validation 288-319)
+              f"{gen.VALIDATION_FIRST_SEED}-{gen.VALIDATION_LAST_SEED} (round 10)")
+N_VALIDATION_LAST = 351
+#: case indices (seed 1000 + i) of the two halves (round 10: development 0-319,
+#: validation 320-351)
 DEVELOPMENT = [i for i in range(N_VALIDATION_LAST + 1) if not gen.is_validation_seed(1000 + i)]
 VALIDATION = [i for i in range(N_VALIDATION_LAST + 1) if gen.is_validation_seed(1000 + i)]
 N_CASES = len(DEVELOPMENT)
@@ -126,7 +130,8 @@ def diagnose_case(case: gen.Case) -> dict[str, Any]:
             "se_refined": gen.spectral_error(np.rint(d.refined), case.real),
             "tool_spectral_error": [s["baseline"]["spectral_error"],
                                     s["refined"]["spectral_error"]],
-            "seconds": time.time() - t0}
+            "seconds": time.time() - t0,
+            **({"variant": case.variant} if case.variant is not None else {})}
 
 
 def extension_kw(recipe: str, k: int) -> dict[str, Any]:
@@ -200,6 +205,9 @@ def main() -> None:
     ap.add_argument("--sat-px", type=int, default=SAT_PX,
                     help=f"scene side on the 0.5 m grid, px (default {SAT_PX}; any other "
                          "value only with --indices and --out elsewhere)")
+    ap.add_argument("--variants", action="store_true",
+                    help="render each case with its drawn implementation choices "
+                         "(diagnose_generator.draw_variant); needs --out elsewhere")
     ap.add_argument("--large-sources", type=int, metavar="PX",
                     help="print the development indices whose source holds a PX-pixel scene "
                          "and exit")
@@ -214,6 +222,9 @@ def main() -> None:
     if args.sat_px != SAT_PX and (not args.indices or halves_file):
         sys.exit("--sat-px: give --indices and --out (the halves' results file holds "
                  f"{SAT_PX} px scenes only)")
+    if args.variants and halves_file:
+        sys.exit("--variants: give --out (the halves' results file holds the default "
+                 "implementation only)")
     if halves_file and (args.only or args.indices or args.cases != N_CASES):
         sys.exit("--only, --indices and --cases run part of the halves: give --out, then "
                  "--merge that file into the halves' results file")
@@ -244,10 +255,13 @@ def main() -> None:
             sys.exit(f"--indices: development cases only (0-{DEVELOPMENT[-1]})")
         idx = args.indices
     t0 = time.time()
-    sat_px = args.sat_px
-    _write(args.out, run(idx, sources, (lambda k: {"sat_px": sat_px}) if sat_px != SAT_PX
-                         else None), sources, t0,
-           SEEDS_NOTE, sat_px=sat_px)
+    kw: dict[str, Any] = {}
+    if args.sat_px != SAT_PX:
+        kw["sat_px"] = args.sat_px
+    if args.variants:
+        kw["variants"] = True
+    _write(args.out, run(idx, sources, (lambda k: kw) if kw else None), sources, t0,
+           SEEDS_NOTE, sat_px=args.sat_px, variants=args.variants)
 
 
 def merge(files: list[Path], out: str) -> None:
@@ -268,6 +282,9 @@ def merge(files: list[Path], out: str) -> None:
         if doc.get("setup", {}).get("sat_px", SAT_PX) != SAT_PX:
             sys.exit(f"--merge: {f} holds {doc['setup']['sat_px']} px scenes, not the "
                      f"halves' {SAT_PX} px")
+        if doc.get("setup", {}).get("variants") or any("variant" in r for r in doc["cases"]):
+            sys.exit(f"--merge: {f} holds cases rendered with implementation variants, not "
+                     "the halves' default implementation")
         notes.append(f"{f.name}: {len(doc['cases'])} rows")
         rows.update({r["case"]: r for r in doc["cases"]})
     for r in rows.values():
@@ -284,7 +301,8 @@ def merge(files: list[Path], out: str) -> None:
 
 
 def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
-           seeds: str, sat_px: int = SAT_PX, note: str | None = None) -> None:
+           seeds: str, sat_px: int = SAT_PX, note: str | None = None,
+           variants: bool = False) -> None:
     halves = {h: gen.score([r for r in rows if r["split"] == h])
               for h in ("development", "validation", "extension")
               if any(r["split"] == h for r in rows)}
@@ -293,6 +311,8 @@ def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0:
                      "sources": [{"name": s.name, "gsd_m": s.gsd_m, "note": s.note}
                                  for s in sources],
                      "n_cases": len(rows), "sat_px": sat_px, "seeds": seeds,
+                     "variants": ({"choices": gen.VARIANT_CHOICES, "default":
+                                   gen.DEFAULT_VARIANT} if variants else False),
                      "extension_recipes": {k: [[list(e), q] for e, q in v]
                                            for k, v in EXTENSION_RECIPES.items()}}}
     if note:

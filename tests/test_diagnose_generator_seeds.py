@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,23 +61,28 @@ def test_merge_takes_rows_by_case_recomputes_splits_and_states_limits(tmp_path):
 
     lim = {"detector_integration": {"param": "pitch_px", "limit": 9.0,
                                     "absorbed_side": "below", "q": 3.0}}
-    a = _results(tmp_path / "a.json", [_row("c00", 1000), _row("c300", 1300)])
+    a = _results(tmp_path / "a.json", [_row("c00", 1000), _row("c330", 1330)])
     b = _results(tmp_path / "b.json", [_row("c00", 1000, claimed={"haze": {}},
                                             detection_limits=lim)])
     out = tmp_path / "merged.json"
     bench.merge([a, b], str(out))
     doc = json.loads(out.read_text())
     rows = {r["case"]: r for r in doc["cases"]}
-    assert [r["case"] for r in doc["cases"]] == ["c00", "c300"]
+    assert [r["case"] for r in doc["cases"]] == ["c00", "c330"]
     assert rows["c00"]["claimed"] == {"haze": {}} and rows["c00"]["detection_limits"] == lim
-    assert rows["c00"]["split"] == "development" and rows["c300"]["split"] == "validation"
-    assert rows["c300"]["detection_limits"] == detection_limits_json(3.0)
-    assert rows["c300"]["detection_limits_restated"] is True
+    assert rows["c00"]["split"] == "development" and rows["c330"]["split"] == "validation"
+    assert rows["c330"]["detection_limits"] == detection_limits_json(3.0)
+    assert rows["c330"]["detection_limits_restated"] is True
     assert doc["halves"]["development"]["n_cases"] == 1
     assert doc["seconds_total"] == pytest.approx(3.0, abs=0.5)
     big = _results(tmp_path / "big.json", [_row("c01", 1001)], sat_px=384)
     with pytest.raises(SystemExit, match="384 px"):
         bench.merge([a, big], str(tmp_path / "refused.json"))
+    assert not (tmp_path / "refused.json").exists()
+    other = _results(tmp_path / "variants.json",
+                     [_row("c02", 1002, variant=gen.draw_variant(1002))])
+    with pytest.raises(SystemExit, match="implementation variants"):
+        bench.merge([a, other], str(tmp_path / "refused.json"))
     assert not (tmp_path / "refused.json").exists()
 
 
@@ -96,3 +102,89 @@ def test_stated_untestable_reads_the_rows_limits():
     assert s["recall"] == 0.0 and s["stated_untestable_found"] == 0
     row["claimed"] = {"atmospheric_blur": {}}   # claimed: the report states no limit for it
     assert gen.stated_untestable(row) == set()
+
+
+# ------------------------------------------------------------------ implementation variants
+def test_variants_keep_each_cases_effects_and_default_render():
+    """``--variants`` renders the same case (seed, Q, effects, parameters, UAV image) with
+    other implementation choices; the default choices are the halves' own render."""
+    truth = {"atmospheric_blur": {"f0_cyc_per_px": 0.3},
+             "resampling": {"native_pitch_px": 1.5}, "compression": {"quality": 40}}
+    for seed in (1003, 1210):
+        plain = gen.make_case(seed - 1000, [])
+        varied = gen.make_case(seed - 1000, [], variants=True)
+        assert varied.variant == gen.draw_variant(seed) and plain.variant is None
+        assert (varied.q, varied.truth) == (plain.q, plain.truth)
+        np.testing.assert_array_equal(varied.uav, plain.uav)
+    ground = gen.synthetic_ground(np.random.default_rng(5), 40 * gen.PHI)
+    a = gen.render(ground, 2.0, truth, np.random.default_rng(1), margin_px=6)
+    b = gen.render(ground, 2.0, truth, np.random.default_rng(1), margin_px=6,
+                   variant=dict(gen.DEFAULT_VARIANT))
+    np.testing.assert_array_equal(a[1], b[1])
+    other = {"atmosphere_exponent": 1.0, "interpolation": "pillow_keys",
+             "jpeg": "pillow_444", "shift": "fourier"}
+    c = gen.render(ground, 2.0, truth, np.random.default_rng(1), margin_px=6, variant=other)
+    assert np.abs(c[1] - a[1]).mean() > 0.5
+
+
+def test_variant_draws_cover_every_choice():
+    draws = [gen.draw_variant(1000 + i) for i in range(64)]
+    lo, hi = gen.VARIANT_CHOICES["atmosphere_exponent"]
+    assert all(lo <= d["atmosphere_exponent"] <= hi for d in draws)
+    for key in ("interpolation", "jpeg", "shift"):
+        assert {d[key] for d in draws} == set(gen.VARIANT_CHOICES[key])
+
+
+def test_atmosphere_exponent_is_the_mtf_shape():
+    """exp(-(f/f0)^n): 1/e at f0 whatever n; exp(-2^n) at 2 f0."""
+    n_fine, f0 = 200, 0.25
+    for exponent in (1.0, 5.0 / 3.0, 2.0):
+        mtf = gen.atmosphere_mtf(n_fine, f0, exponent=exponent)
+        # fine-grid frequency index k is k/n_fine cycles per fine px = k*PHI/n_fine per px
+        k0 = int(round(f0 * n_fine / gen.PHI))
+        assert mtf[0, k0] == pytest.approx(np.exp(-1.0), rel=1e-9)
+        assert mtf[0, 2 * k0] == pytest.approx(np.exp(-2.0 ** exponent), rel=1e-9)
+
+
+def test_pillow_keys_interpolation_reproduces_quadratics():
+    """Keys' cubic convolution (a = -0.5, Pillow's bicubic) reproduces quadratics exactly
+    away from the edges; OpenCV's a = -0.75 does not: the two variants are different
+    kernels, as stated."""
+    import cv2
+    from PIL import Image
+
+    n_nat, n = 40, 64
+    # native pixel centres in output pixel units: (j + 0.5) * n / n_nat
+    x_nat = (np.arange(n_nat) + 0.5) * n / n_nat
+    x_out = np.arange(n) + 0.5
+    row_nat = (0.01 * x_nat ** 2).astype(np.float32)
+    nat = np.repeat(row_nat[np.newaxis], 8, axis=0)
+    keys = np.asarray(Image.fromarray(nat, "F").resize((n, 8), Image.BICUBIC))[4]
+    ocv = cv2.resize(nat, (n, 8), interpolation=cv2.INTER_CUBIC)[4]
+    inner = slice(6, n - 6)
+    truth = 0.01 * x_out ** 2
+    assert np.max(np.abs(keys[inner] - truth[inner])) < 1e-3
+    assert np.max(np.abs(ocv[inner] - truth[inner])) > 5e-3
+
+
+def test_fourier_shift_moves_a_sinusoid_exactly():
+    n = 64
+    x = np.arange(n)
+    img = np.sin(2 * np.pi * 3 * x / n)[np.newaxis, np.newaxis, :].repeat(n, axis=1)
+    out = gen.fourier_shift_fine(img, 0.0, 1.3)
+    np.testing.assert_allclose(out[0, 5], np.sin(2 * np.pi * 3 * (x - 1.3) / n), atol=1e-9)
+
+
+def test_jpeg_variants_keep_channel_order_and_differ_in_chroma():
+    rng = np.random.default_rng(0)
+    img = np.stack([np.full((64, 64), 200.0), np.full((64, 64), 60.0),
+                    np.full((64, 64), 30.0)]) + rng.normal(0, 8, (3, 64, 64))
+    img[:, :, 32:] = img[::-1, :, 32:]    # a colour edge, so chroma subsampling matters
+    outs = {"420": gen.jpeg_pillow(img, 60), "444": gen.jpeg_pillow(img, 60, subsampling=0),
+            "422": gen.jpeg_opencv_422(img, 60)}
+    for out in outs.values():
+        np.testing.assert_allclose(out[:, :, :24].mean(axis=(1, 2)),
+                                   img[:, :, :24].mean(axis=(1, 2)), atol=3.0)
+    assert np.abs(outs["420"] - outs["444"]).mean() > 0.1
+    assert np.abs(outs["422"] - outs["444"]).mean() > 0.1
+    assert np.abs(outs["422"] - outs["420"]).mean() > 0.05
