@@ -21,12 +21,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
 
-from geosim.physics import otf, radiometry
+from geosim.physics import cubic, otf, radiometry
+from geosim.physics.cubic import OPENCV_A
 from geosim.physics.geometry import fourier_shift, step_side
 
 __all__ = [
@@ -51,6 +51,9 @@ class ParamSpec:
         Starting values for the fit (several = multi-start).
     periodic
         Period of an angular parameter (180 for directions), else ``None``.
+    nuisance
+        A shape parameter rather than the effect's size (the resampling's cubic kernel):
+        a fit at either end of its range is still a real instance of the effect.
     """
 
     name: str
@@ -59,6 +62,7 @@ class ParamSpec:
     upper: float
     initial: tuple[float, ...]
     periodic: float | None = None
+    nuisance: bool = False
 
 
 class Effect:
@@ -160,60 +164,52 @@ class OffNadirAnisotropy(BlurEffect):
         return otf.off_nadir_otf(fy, fx, sigma_px=sigma_px, azimuth_deg=azimuth_deg)
 
 
-def _keys_kernel(x: np.ndarray, a: float = -0.75) -> np.ndarray:
-    ax = np.abs(x)
-    k = np.where(ax <= 1, (a + 2) * ax**3 - (a + 3) * ax**2 + 1,
-                 np.where(ax < 2, a * ax**3 - 5 * a * ax**2 + 8 * a * ax - 4 * a, 0.0))
-    return k
-
-
-@lru_cache(maxsize=1)
-def _cubic_table() -> tuple[np.ndarray, np.ndarray]:
-    x = np.linspace(-2.0, 2.0, 4001)
-    k = _keys_kernel(x)
-    nu = np.linspace(0.0, 8.0, 3201)
-    dx = x[1] - x[0]
-    vals = (k[None, :] * np.cos(2 * np.pi * nu[:, None] * x[None, :])).sum(axis=1) * dx
-    return nu, vals
-
-
-def cubic_interpolation_mtf(nu: np.ndarray) -> np.ndarray:
-    """Transfer function of OpenCV's bicubic interpolation kernel (Keys, a = −0.75).
+def cubic_interpolation_mtf(nu: np.ndarray, cubic_a: float = OPENCV_A) -> np.ndarray:
+    """Transfer function of a cubic-convolution kernel (Keys; OpenCV's bicubic a = −0.75,
+    GDAL's and Pillow's a = −0.5; :func:`geosim.physics.cubic.cubic_mtf`).
 
     ``nu`` in cycles per *native* sample; 1 at 0, small above the native Nyquist 0.5.
     """
-    table_nu, table = _cubic_table()
-    return np.interp(np.abs(nu), table_nu, table, right=0.0)
+    return cubic.cubic_mtf(nu, cubic_a)
 
 
-def resampling_transfer(fy: np.ndarray, fx: np.ndarray, native_pitch_px: float) -> np.ndarray:
+def resampling_transfer(fy: np.ndarray, fx: np.ndarray, native_pitch_px: float,
+                        cubic_a: float = OPENCV_A) -> np.ndarray:
     """Average (coherent) transfer of area-averaging onto a native grid of ``native_pitch_px``
-    and bicubic interpolation back: ∏ sinc(p f) · K_cubic(p f) over both axes.
+    and cubic convolution (kernel parameter ``cubic_a``) back:
+    ∏ sinc(p f) · K_a(p f) over both axes.
 
     Content above the native Nyquist 1/(2p) is aliased; the aliased part is incoherent
     with the scene at the same frequency and shows up as low coherence, not in H.
     """
     p = native_pitch_px
-    return (np.sinc(p * fx) * cubic_interpolation_mtf(p * fx)
-            * np.sinc(p * fy) * cubic_interpolation_mtf(p * fy))
+    return (np.sinc(p * fx) * cubic_interpolation_mtf(p * fx, cubic_a)
+            * np.sinc(p * fy) * cubic_interpolation_mtf(p * fy, cubic_a))
 
 
 class Resampling(BlurEffect):
     name = "resampling"
     params = (ParamSpec("native_pitch_px", "native GSD / product GSD", 1.1, 3.0,
-                        (1.3, 1.6, 2.0)),)
+                        (1.3, 1.6, 2.0)),
+              # processors differ: OpenCV -0.75, GDAL/Pillow/most "cubic convolution" -0.5
+              # (Keys); the transfer is linear in it. A shape parameter, not an effect size:
+              # either end of its range is a real kernel, so a fit there is no sign of
+              # the effect standing in for another (not checked by ``at_bound``)
+              ParamSpec("cubic_a", "cubic-convolution kernel parameter (dimensionless)",
+                        -1.0, -0.5, (-0.6,), nuisance=True))
     signature = ("transfer near zero above the native Nyquist 1/(2·native_pitch_px), with "
                  "aliased (incoherent) power there")
     explanation = ("The product was delivered on a finer grid than the detector really "
                    "sampled (e.g. 0.65–0.8 m native resampled or pansharpened to 0.5 m), so "
                    "detail finer than the native sampling is missing or aliased.")
 
-    def transfer(self, fy, fx, *, native_pitch_px):
-        return resampling_transfer(fy, fx, native_pitch_px)
+    def transfer(self, fy, fx, *, native_pitch_px, cubic_a=OPENCV_A):
+        return resampling_transfer(fy, fx, native_pitch_px, cubic_a)
 
-    def apply(self, image, *, rng=None, native_pitch_px):
+    def apply(self, image, *, rng=None, native_pitch_px, cubic_a=OPENCV_A):
         return radiometry.resample_through_native(np.asarray(image, dtype=float),
-                                                  native_pitch_px=native_pitch_px)
+                                                  native_pitch_px=native_pitch_px,
+                                                  cubic_a=cubic_a)
 
 
 class SensorNoise(Effect):

@@ -238,7 +238,7 @@ class ForwardModel:
         if resampled:
             # resampling rendered from the fine grid (native sampling of the optics' image)
             ps = self.native_phase_shift_px
-            s = native(self.q, rest["resampling"]["native_pitch_px"],
+            s = native(self.q, **rest["resampling"],
                        shift_px=(shift[0] + ps[0], shift[1] + ps[1]), transfer=tr, key=key)
             if s is not None:
                 rest = {n: p for n, p in rest.items() if n != "resampling"}

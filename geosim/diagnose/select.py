@@ -136,7 +136,7 @@ class BlurSelection:
 
 def at_bound(name: str, params: dict[str, float], rel: float = 0.01) -> bool:
     for spec in get_effect(name).params:
-        if spec.periodic or spec.name not in params:
+        if spec.periodic or spec.nuisance or spec.name not in params:
             continue
         span = spec.upper - spec.lower
         v = params[spec.name]

@@ -13,6 +13,7 @@ import numpy as np
 
 from geosim.degrade.core import SpectralDegrader, blur, degrade_array
 from geosim.physics import otf
+from geosim.physics.cubic import OPENCV_A, cubic_resize
 from geosim.physics.geometry import fourier_shift
 from geosim.physics.otf import TransferFunction
 
@@ -121,7 +122,7 @@ class QSimulator:
             img = otf.apply_transfer(img, lambda fy, fx: transfer(fy * phi, fx * phi))
         return img
 
-    def native(self, q: float, native_pitch_px: float, *,
+    def native(self, q: float, native_pitch_px: float, *, cubic_a: float = OPENCV_A,
                shift_px: tuple[float, float] = (0.0, 0.0),
                transfer: TransferFunction | None = None, key: object = None
                ) -> np.ndarray | None:
@@ -129,10 +130,10 @@ class QSimulator:
         the UAV image (moved by ``shift_px`` and filtered by ``transfer``, satellite-grid
         units, as in :meth:`variant`) through the optics of ``q`` on the fine grid, each
         native detector averaging its area (``native_pitch_px`` product pixels), then
-        cubic convolution onto the product grid. Resampling the *sampled* simulation
-        instead misses the aliasing the native sampling makes of content above the
-        product Nyquist (Q ≲ 1.5). ``None`` when the simulator keeps no image or the
-        image has invalid pixels. Bands first, DN, float64."""
+        cubic convolution (kernel parameter ``cubic_a``) onto the product grid.
+        Resampling the *sampled* simulation instead misses the aliasing the native
+        sampling makes of content above the product Nyquist (Q ≲ 1.5). ``None`` when
+        the simulator keeps no image or the image has invalid pixels. Bands first, DN, float64."""
         if self.uav is None or (self.valid is not None and not np.all(self.valid)):
             return None
         ck = (round(float(q), 4), round(float(shift_px[0]), 6), round(float(shift_px[1]), 6),
@@ -151,5 +152,5 @@ class QSimulator:
         for i, band in enumerate(fine):
             src = np.ascontiguousarray(band[:rows * self.phi, :cols * self.phi])
             low = cv2.resize(src, (n_cols, n_rows), interpolation=cv2.INTER_AREA)
-            out[i] = cv2.resize(low, (cols, rows), interpolation=cv2.INTER_CUBIC)
+            out[i] = cubic_resize(low, (rows, cols), cubic_a)
         return out

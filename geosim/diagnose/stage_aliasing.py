@@ -22,6 +22,7 @@ from geosim.diagnose.spectra import spectral_error
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs, greys
 from geosim.diagnose.stage_noise import realisations
+from geosim.physics.cubic import OPENCV_A
 
 __all__ = ["aliasing_test", "ALIASING_SPECTRAL_GAIN", "ALIASING_SPECTRAL_GAIN_SPLIT"]
 
@@ -92,8 +93,13 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
         return spectral_error(greys(img), inp.grey, block_px=setup.block_px, origins=origins)
 
     pitches = np.round(np.arange(1.15, 2.01, 0.05), 2)
-    imgs = [delivered(model.without(blur={**model.blur, name: {"native_pitch_px": float(p)}}))
-            for p in pitches]
+    # the kernel the transfer fit chose (the power spectrum barely constrains it)
+    cubic_a = float(params.get("cubic_a", OPENCV_A))
+
+    def at(p: float) -> dict[str, float]:
+        return {"native_pitch_px": float(p), "cubic_a": cubic_a}
+
+    imgs = [delivered(model.without(blur={**model.blur, name: at(p)})) for p in pitches]
     none = delivered(model)
     se_h = np.array([[se_on(im, h) for h in halves] for im in imgs])   # (pitch, half)
     se0 = [se_on(none, h) for h in halves]
@@ -109,11 +115,14 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
         # not have (as a fitted parameter at a bound, never claimed by name; development:
         # 1.15 px where the truth was atmosphere at Q 4)
         return model
-    eff = {**model.blur, name: {"native_pitch_px": float(pitches[j])}}
+    eff = {**model.blur, name: at(pitches[j])}
     fit_p = fit_transfer(setup.full, names, fix_q=model.q, q_starts=(model.q,))
     # the transfer's view (reported): the model with the spectrally fitted pitch
     chi2 = evaluate_chi2(setup.full, q=model.q, gain=fit_p.gain, effects=eff)
-    sigmas = {**fit_p.sigmas, name: {"native_pitch_px": 0.05}}   # the scan's step
+    # the pitch: the scan's step; the kernel: as the transfer fit gave it
+    sigmas = {**fit_p.sigmas, name: {
+        "native_pitch_px": 0.05,
+        "cubic_a": float(fit.sigmas.get(name, {}).get("cubic_a", 0.0))}}  # type: ignore[union-attr]
     step_fit = replace(fit_p, effects=eff, chi2=chi2, q=model.q, sigmas=sigmas)
     # heldout_gain here: the held-out drop of the spectral error (the weaker half)
     sel.steps.append(AcceptedEffect(name, delta_bic(prev, step_fit, 2 * setup.full.t_real.size),

@@ -11,6 +11,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from geosim.physics.cubic import OPENCV_A, cubic_resize
+
 
 def _per_band(values: Sequence[float] | np.ndarray, bands: int, name: str) -> np.ndarray:
     v = np.asarray(values, dtype=float).reshape(-1)
@@ -72,12 +74,14 @@ def jpeg_roundtrip(image: np.ndarray, *, quality: int) -> np.ndarray:
     return np.moveaxis(dec, -1, 0).astype(float)
 
 
-def resample_through_native(image: np.ndarray, *, native_pitch_px: float) -> np.ndarray:
+def resample_through_native(image: np.ndarray, *, native_pitch_px: float,
+                            cubic_a: float = OPENCV_A) -> np.ndarray:
     """Simulate a product resampled from a coarser native GSD onto this grid.
 
     Each band is area-averaged onto a native grid ``native_pitch_px`` times
-    coarser (the native detector integration), then bicubically resampled back
-    to the original shape (the product's resampling). Content above the native
+    coarser (the native detector integration), then resampled back to the original
+    shape by cubic convolution with kernel parameter ``cubic_a`` (the product's
+    resampling; −0.75 OpenCV's bicubic, −0.5 GDAL's). Content above the native
     Nyquist, 1 / (2 · native_pitch_px) cycles per pixel, is removed.
     """
     img = np.asarray(image, dtype=np.float32)
@@ -87,8 +91,7 @@ def resample_through_native(image: np.ndarray, *, native_pitch_px: float) -> np.
     out = np.empty_like(img)
     for i, band in enumerate(img.reshape(-1, rows, cols)):
         low = cv2.resize(band, (n_cols, n_rows), interpolation=cv2.INTER_AREA)
-        out.reshape(-1, rows, cols)[i] = cv2.resize(low, (cols, rows),
-                                                    interpolation=cv2.INTER_CUBIC)
+        out.reshape(-1, rows, cols)[i] = cubic_resize(low, (rows, cols), cubic_a)
     return out.astype(float)
 
 
