@@ -22,7 +22,7 @@ from geosim.diagnose.spectra import spectral_error
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs, greys
 from geosim.diagnose.stage_noise import realisations
-from geosim.physics.cubic import OPENCV_A
+from geosim.physics.cubic import KEYS_A, OPENCV_A
 
 __all__ = ["aliasing_test", "ALIASING_SPECTRAL_GAIN", "ALIASING_SPECTRAL_GAIN_SPLIT"]
 
@@ -46,9 +46,10 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
        not at a bound, not worse on the held-out blocks) is added when the power spectrum
        it predicts fits the real scene's clearly better (:data:`ALIASING_SPECTRAL_GAIN`).
     2. When the transfer cannot see it (optics at high Q cut the band where its roll-off
-       lies), its native pitch is fitted on the power spectrum itself, by split halves:
-       the pitch chosen on the left half of the blocks must improve the right half's
-       spectral error by the same margin, and vice versa.
+       lies), its native pitch and kernel (OpenCV's a = −0.75 or Keys' −0.5) are fitted on
+       the power spectrum itself, by split halves: the pair chosen on the left half of the
+       blocks must improve the right half's spectral error by the same margin, and vice
+       versa.
 
     Spectral errors on ``ev``'s blocks (route 2: its left and right halves), noise
     realisations from ``ev.noise_seed``; ``candidates``: the effects the fit may add
@@ -93,15 +94,16 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
         return spectral_error(greys(img), inp.grey, block_px=setup.block_px, origins=origins)
 
     pitches = np.round(np.arange(1.15, 2.01, 0.05), 2)
-    # the kernel the transfer fit chose (the power spectrum barely constrains it)
-    cubic_a = float(params.get("cubic_a", OPENCV_A))
+    # the power spectrum barely constrains the kernel, and where the transfer cannot see
+    # resampling its fit of the kernel is arbitrary: scan the two kernels processors use
+    grid = [(float(a), float(p)) for a in (OPENCV_A, KEYS_A) for p in pitches]
 
-    def at(p: float) -> dict[str, float]:
-        return {"native_pitch_px": float(p), "cubic_a": cubic_a}
+    def at(a: float, p: float) -> dict[str, float]:
+        return {"native_pitch_px": p, "cubic_a": a}
 
-    imgs = [delivered(model.without(blur={**model.blur, name: at(p)})) for p in pitches]
+    imgs = [delivered(model.without(blur={**model.blur, name: at(a, p)})) for a, p in grid]
     none = delivered(model)
-    se_h = np.array([[se_on(im, h) for h in halves] for im in imgs])   # (pitch, half)
+    se_h = np.array([[se_on(im, h) for h in halves] for im in imgs])   # (kernel·pitch, half)
     se0 = [se_on(none, h) for h in halves]
     heldout = []
     for k in (0, 1):  # choose on half k, validate on the other
@@ -110,19 +112,17 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     if min(heldout) < 1.0 - ALIASING_SPECTRAL_GAIN_SPLIT:
         return model
     j = int(np.argmin(se_h.sum(axis=1)))
-    if j in (0, len(pitches) - 1):
+    if grid[j][1] in (pitches[0], pitches[-1]):
         # pinned at an end of the scan: the pitch stands in for a shape resampling does
         # not have (as a fitted parameter at a bound, never claimed by name; development:
         # 1.15 px where the truth was atmosphere at Q 4)
         return model
-    eff = {**model.blur, name: at(pitches[j])}
+    eff = {**model.blur, name: at(*grid[j])}
     fit_p = fit_transfer(setup.full, names, fix_q=model.q, q_starts=(model.q,))
     # the transfer's view (reported): the model with the spectrally fitted pitch
     chi2 = evaluate_chi2(setup.full, q=model.q, gain=fit_p.gain, effects=eff)
-    # the pitch: the scan's step; the kernel: as the transfer fit gave it
-    sigmas = {**fit_p.sigmas, name: {
-        "native_pitch_px": 0.05,
-        "cubic_a": float(fit.sigmas.get(name, {}).get("cubic_a", 0.0))}}  # type: ignore[union-attr]
+    # the scan's steps: 0.05 px in pitch; the kernel is one of two (0.25 apart)
+    sigmas = {**fit_p.sigmas, name: {"native_pitch_px": 0.05, "cubic_a": 0.25}}
     step_fit = replace(fit_p, effects=eff, chi2=chi2, q=model.q, sigmas=sigmas)
     # heldout_gain here: the held-out drop of the spectral error (the weaker half)
     sel.steps.append(AcceptedEffect(name, delta_bic(prev, step_fit, 2 * setup.full.t_real.size),
