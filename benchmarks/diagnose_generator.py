@@ -21,9 +21,9 @@ different implementer could choose drawn per case from a stream of their own
 (:func:`draw_variant`): the atmosphere MTF's exponent n in exp(-(f/f0)^n), the cubic
 kernel of the resampling's interpolation (OpenCV's a = -0.75 or Pillow's Keys a = -0.5),
 the JPEG encoder and its chroma subsampling (Pillow 4:2:0, Pillow 4:4:4 or OpenCV
-4:2:2) and the sub-pixel shift (cubic
-spline or Fourier phase ramp). The diagnosis models one choice of each, so the variants
-measure how its claims hold on forward models it was not written against.
+4:2:2) and the sub-pixel shift (cubic spline or Fourier phase ramp). The diagnosis models
+one choice of each, so the variants measure how its claims hold on forward models it was
+not written against.
 
 Frequencies: cycles per fine pixel ``f``; on the product grid ``f * phi``.
 Directions: degrees clockwise from grid north (up), in [0, 180).
@@ -262,27 +262,20 @@ def sample_bicubic(img: np.ndarray) -> np.ndarray:
                      for b in img]).astype(float)
 
 
-def sample_native(img: np.ndarray, native_pitch_px: float) -> np.ndarray:
+def sample_native(img: np.ndarray, native_pitch_px: float, *,
+                  interpolation: str = "opencv_cubic") -> np.ndarray:
     """Render at the native GSD (each native detector averages its area), then cubic
-    convolution (Keys, OpenCV bicubic) to the 0.5 m product grid."""
+    convolution to the 0.5 m product grid: ``"opencv_cubic"`` OpenCV's bicubic (Keys,
+    a = -0.75), ``"pillow_keys"`` Pillow's (Keys, a = -0.5)."""
     n = img.shape[-1] // PHI
     n_nat = int(round(n / native_pitch_px))
     out = []
     for b in img.astype(np.float32):
         nat = cv2.resize(b, (n_nat, n_nat), interpolation=cv2.INTER_AREA)
-        out.append(cv2.resize(nat, (n, n), interpolation=cv2.INTER_CUBIC))
-    return np.stack(out).astype(float)
-
-
-def sample_native_pillow(img: np.ndarray, native_pitch_px: float) -> np.ndarray:
-    """:func:`sample_native` with Pillow's bicubic (Keys, a = -0.5) for the interpolation
-    to the product grid instead of OpenCV's (a = -0.75)."""
-    n = img.shape[-1] // PHI
-    n_nat = int(round(n / native_pitch_px))
-    out = []
-    for b in img.astype(np.float32):
-        nat = cv2.resize(b, (n_nat, n_nat), interpolation=cv2.INTER_AREA)
-        out.append(np.asarray(Image.fromarray(nat, "F").resize((n, n), Image.BICUBIC)))
+        if interpolation == "pillow_keys":
+            out.append(np.asarray(Image.fromarray(nat, "F").resize((n, n), Image.BICUBIC)))
+        else:
+            out.append(cv2.resize(nat, (n, n), interpolation=cv2.INTER_CUBIC))
     return np.stack(out).astype(float)
 
 
@@ -503,8 +496,8 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
     if "detector_integration" in truth:
         img = detector_box(img, truth["detector_integration"]["pitch_px"])
     if "resampling" in truth:
-        native = sample_native_pillow if v["interpolation"] == "pillow_keys" else sample_native
-        sat = native(img, truth["resampling"]["native_pitch_px"])
+        sat = sample_native(img, truth["resampling"]["native_pitch_px"],
+                            interpolation=v["interpolation"])
     else:
         sat = sample_bicubic(img)
     if "haze" in truth:

@@ -31,7 +31,7 @@ from geosim.physics.geometry import fourier_shift, step_side
 
 __all__ = [
     "ParamSpec", "Effect", "BlurEffect", "CATALOGUE", "BLUR_EFFECTS", "get_effect",
-    "cubic_interpolation_mtf", "resampling_transfer",
+    "resampling_transfer",
 ]
 
 
@@ -164,15 +164,6 @@ class OffNadirAnisotropy(BlurEffect):
         return otf.off_nadir_otf(fy, fx, sigma_px=sigma_px, azimuth_deg=azimuth_deg)
 
 
-def cubic_interpolation_mtf(nu: np.ndarray, cubic_a: float = OPENCV_A) -> np.ndarray:
-    """Transfer function of a cubic-convolution kernel (Keys; OpenCV's bicubic a = −0.75,
-    GDAL's and Pillow's a = −0.5; :func:`geosim.physics.cubic.cubic_mtf`).
-
-    ``nu`` in cycles per *native* sample; 1 at 0, small above the native Nyquist 0.5.
-    """
-    return cubic.cubic_mtf(nu, cubic_a)
-
-
 def resampling_transfer(fy: np.ndarray, fx: np.ndarray, native_pitch_px: float,
                         cubic_a: float = OPENCV_A) -> np.ndarray:
     """Average (coherent) transfer of area-averaging onto a native grid of ``native_pitch_px``
@@ -183,8 +174,8 @@ def resampling_transfer(fy: np.ndarray, fx: np.ndarray, native_pitch_px: float,
     with the scene at the same frequency and shows up as low coherence, not in H.
     """
     p = native_pitch_px
-    return (np.sinc(p * fx) * cubic_interpolation_mtf(p * fx, cubic_a)
-            * np.sinc(p * fy) * cubic_interpolation_mtf(p * fy, cubic_a))
+    return (np.sinc(p * fx) * cubic.cubic_mtf(p * fx, cubic_a)
+            * np.sinc(p * fy) * cubic.cubic_mtf(p * fy, cubic_a))
 
 
 class Resampling(BlurEffect):
