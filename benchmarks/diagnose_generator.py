@@ -335,18 +335,18 @@ def luma(img: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- cases
-# Splits by seed. Round 10 (this one): the validation half is seeds 1320-1351, drawn only
-# for round 10's final report; every seed of 1000-1319 is development (1000-1063: round 1's
+# Splits by seed. Round 11 (this one): the validation half is seeds 1352-1383, drawn only
+# for round 11's final report; every seed of 1000-1351 is development (1000-1063: round 1's
 # two halves, seen while tuning; odd 1065-1127: round 2's validation half; even 1064-1126:
 # round 3's validation half; 1128-1159: round 4's; 1160-1191: round 5's; 1192-1223: round
-# 6's; 1224-1255: round 7's; 1256-1287: round 8's; 1288-1319: round 9's, each seen in its
-# round's final report).
-VALIDATION_FIRST_SEED = 1320
-VALIDATION_LAST_SEED = 1351
+# 6's; 1224-1255: round 7's; 1256-1287: round 8's; 1288-1319: round 9's; 1320-1351: round
+# 10's, each seen in its round's final report).
+VALIDATION_FIRST_SEED = 1352
+VALIDATION_LAST_SEED = 1383
 
 
 def is_validation_seed(seed: int) -> bool:
-    """Whether ``seed`` belongs to the (round 10) validation half."""
+    """Whether ``seed`` belongs to the (round 11) validation half."""
     return VALIDATION_FIRST_SEED <= seed <= VALIDATION_LAST_SEED
 
 
@@ -542,7 +542,7 @@ def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: in
     """Case ``i`` (seed base_seed + i): source round robin; every ``control_every``-th a
     control (the paper's model only); else 1-3 effects. ``force``: exactly these effects
     (random parameters), for extra development cases of one kind (seeds 6000-6999 for
-    blur effects; the seeds 1000-1351 are drawn without it).
+    blur effects; the seeds 1000-1383 are drawn without it).
 
     ``effects`` forces the effect set (parameters still drawn from RANGES, no effect count
     drawn) and ``q_range`` the range Q is drawn from: only for the development extension
@@ -652,9 +652,15 @@ def _testable_recall(rows: list[dict[str, Any]]) -> dict[str, Any]:
     pairs = [(set(r["truth"]), set(r["claimed"]), stated_untestable(r)) for r in rows]
     tp = sum(len((t - u) & c) for t, c, u in pairs)
     fn = sum(len(t - u - c) for t, c, u in pairs)
+    # the statement "testable" itself: the true effects that have a stated limit and lie
+    # beyond it (or were claimed), and how many of them were found
+    limited = [(set(r["truth"]) & set(r.get("detection_limits") or {}), c, u)
+               for r, (_, c, u) in zip(rows, pairs, strict=True)]
     return {"recall_testable": tp / (tp + fn) if tp + fn else 1.0,
             "stated_untestable": sum(len(u) for _, _, u in pairs),
             "stated_untestable_found": sum(len(u & c) for _, c, u in pairs),
+            "stated_testable": sum(len(t - u) for t, _, u in limited),
+            "stated_testable_found": sum(len((t - u) & c) for t, c, u in limited),
             "rows_with_limits": sum(1 for r in rows if r.get("detection_limits"))}
 
 
@@ -663,7 +669,10 @@ def score(rows: list[dict[str, Any]]) -> dict[str, Any]:
     se_base, se_refined); and, where the rows record the tool's detection limits, the
     recall over the true effects it did not declare untestable (``recall_testable``) and
     how many it declared untestable (``stated_untestable``) but found anyway
-    (``stated_untestable_found``: each one shows the statement too cautious)."""
+    (``stated_untestable_found``: each one shows the statement too cautious); of the true
+    effects that have a stated limit, how many lie beyond it (``stated_testable``) and how
+    many of those were found (``stated_testable_found``: each one missed shows the
+    statement too bold)."""
     tp = sum(len(set(r["truth"]) & set(r["claimed"])) for r in rows)
     fp = sum(len(set(r["claimed"]) - set(r["truth"])) for r in rows)
     fn = sum(len(set(r["truth"]) - set(r["claimed"])) for r in rows)

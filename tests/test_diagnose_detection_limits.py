@@ -3,6 +3,9 @@
 Checked against an independent implementation written here (numpy formulas for the
 circular-aperture OTF, the detector's separable sinc and the atmospheric MTF; the best
 wider PSF by Nelder-Mead over (Q', gain)), and for the properties the limit must have.
+The limits measured on a scene's transfer are checked on synthetic measured transfers
+(the same formulas, a known per-frequency variance) against a brute-force search written
+here and against the scaling the χ² must have.
 """
 
 from __future__ import annotations
@@ -13,11 +16,18 @@ from scipy.optimize import minimize
 
 from geosim.diagnose.detection_limits import (
     DETECTABLE_DIFFERENCE,
+    MEASURED_MARGIN,
+    MeasuredTransfer,
     absorbed_difference,
+    combine_limits,
     detection_limit,
     detection_limits_json,
     limits_markdown,
+    needed_delta_chi2,
+    predicted_delta_chi2,
 )
+from geosim.diagnose.fit import HANN_CORRELATION, SpectralData
+from geosim.diagnose.select import MIN_CV_GAIN, MIN_DELTA_BIC
 
 F = np.linspace(0.0, 0.5, 121)[1:]
 TH = np.deg2rad(np.linspace(0.0, 45.0, 10))
@@ -87,3 +97,157 @@ def test_absorbs_and_json():
     assert limits_markdown(doc, claimed=list(doc)) == []
     with pytest.raises(ValueError, match="no detection limit for 'haze'"):
         detection_limit(2.0, "haze")
+
+
+# --- limits measured on the scene's transfer ------------------------------------------
+
+def _blur_np(name: str, value: float, fy: np.ndarray, fx: np.ndarray) -> np.ndarray:
+    if name == "detector_integration":
+        return np.sinc(fx * value) * np.sinc(fy * value)
+    return np.exp(-(np.hypot(fy, fx) / value) ** (5 / 3))
+
+
+def _measured(q: float, sigma: float, *, blur: tuple[str, float] | None = None
+              ) -> SpectralData:
+    """A measured transfer on a 32 px Welch block's half plane: the Q grid's transfers
+    are the circular-aperture OTF (numpy, written here), the scene's is OTF(q) (times a
+    blur), every sample's variance sigma²."""
+    f = np.fft.fftfreq(32)
+    fy, fx = (a.ravel() for a in np.meshgrid(f, f, indexing="ij"))
+    fr = np.hypot(fy, fx)
+    keep = ((fx > 0) | ((fx == 0) & (fy > 0))) & (fr <= 0.5) & (fr > 0)
+    fy, fx, fr = fy[keep], fx[keep], fr[keep]
+
+    def airy(qq: float) -> np.ndarray:
+        v = np.clip(fr * qq, 0.0, 1.0)
+        return (2 / np.pi) * (np.arccos(v) - v * np.sqrt(1 - v * v))
+
+    grid = np.exp(np.arange(np.log(0.7), np.log(6.0), np.log(1.04)))
+    t = airy(q) * (_blur_np(*blur, fy, fx) if blur else 1.0)
+    return SpectralData(fy=fy, fx=fx, t_real=t.astype(complex),
+                        g_q=np.array([airy(g) for g in grid]).astype(complex), q_grid=grid,
+                        var=np.full(fy.size, sigma ** 2), n_blocks=16)
+
+
+def _brute_force(data: SpectralData, q: float, name: str, value: float) -> float:
+    """The definition by exhaustive search on a dense log-Q grid (numpy only): the scene
+    with the blur that matches the delivered Q-only model best, then the χ² of the best
+    Q-only model to it (gains in closed form)."""
+    w = 1.0 / data.var
+    lq = np.log(data.q_grid)
+    dense = np.exp(np.linspace(lq[0], lq[-1], 6001))
+
+    def g_at(qq: float) -> np.ndarray:
+        x = np.interp(np.log(qq), lq, np.arange(lq.size))
+        j = min(int(x), lq.size - 2)
+        return (1 - (x - j)) * data.g_q[j].real + (x - j) * data.g_q[j + 1].real
+
+    units = np.array([g_at(qq) for qq in dense])
+    h = _blur_np(name, value, data.fy, data.fx)
+
+    def best(target: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        g = (u * w * target).sum(1) / (u * w * u).sum(1)
+        return ((target - g[:, None] * u) ** 2 * w).sum(1), g
+
+    delivered = g_at(q)
+    c1, g1 = best(delivered, units * h)
+    k = int(np.argmin(c1))
+    scene = g1[k] * units[k] * h
+    return float(best(scene, units)[0].min())
+
+
+@pytest.mark.parametrize("q, name, value", [
+    (1.4, "detector_integration", 1.3), (3.0, "detector_integration", 1.6),
+    (2.0, "atmospheric_blur", 0.4), (3.5, "atmospheric_blur", 0.6)])
+def test_predicted_evidence_matches_a_brute_force_search(q, name, value):
+    data = _measured(q, 0.01)
+    m = MeasuredTransfer.of(data, q, {})
+    got = predicted_delta_chi2(m, name, value)
+    want = _brute_force(data, q, name, value)
+    assert got == pytest.approx(want, rel=0.03), (got, want)
+    # the delivered model fits the scene but for the Q grid's log-linear interpolation
+    assert m.gain == pytest.approx(1.0, abs=1e-3) and m.chi2 < 0.02 * got
+
+
+def test_predicted_evidence_scales_with_the_measurement_and_the_blur():
+    q = 2.5
+    m1 = MeasuredTransfer.of(_measured(q, 0.01), q, {})
+    m2 = MeasuredTransfer.of(_measured(q, 0.02), q, {})
+    for name, weak, strong in (("detector_integration", 0.9, 1.5),
+                               ("atmospheric_blur", 0.9, 0.35)):
+        # χ² is inverse in the variance: twice the standard error, a quarter of the evidence
+        a, b = predicted_delta_chi2(m1, name, strong), predicted_delta_chi2(m2, name, strong)
+        assert b == pytest.approx(a / 4, rel=1e-3)
+        assert predicted_delta_chi2(m1, name, weak) < a
+
+
+def test_needed_evidence_is_the_claim_rule():
+    data = _measured(2.0, 0.01)
+    n_values = 2 * data.t_real.size
+    small = MeasuredTransfer(data, 2.0, 1.0, {}, chi2=0.5 * n_values)
+    # a good fit: ΔBIC decides (scale 1)
+    assert needed_delta_chi2(small, margin=1.0) == pytest.approx(
+        (MIN_DELTA_BIC + np.log(data.n_eff)) * HANN_CORRELATION)
+    # a poor fit (other physics unmodelled): both rules grow with its χ² (ΔBIC through the
+    # variance scale, the held-out gain relative to it); the stricter is needed
+    big = MeasuredTransfer(data, 2.0, 1.0, {}, chi2=40.0 * n_values)
+    by_bic = (MIN_DELTA_BIC + np.log(data.n_eff)) * HANN_CORRELATION * big.chi2 / (n_values - 3)
+    by_gain = MIN_CV_GAIN / (1 - MIN_CV_GAIN) * big.chi2
+    assert needed_delta_chi2(big, margin=1.0) == pytest.approx(max(by_bic, by_gain))
+    assert needed_delta_chi2(big, margin=1.0) > 40 * needed_delta_chi2(small, margin=1.0) * 0.99
+    one = needed_delta_chi2(big, margin=1.0)
+    assert needed_delta_chi2(big, margin=2.0) == pytest.approx(2 * one)
+    # the stated limits ask MEASURED_MARGIN times the rule
+    assert needed_delta_chi2(big) == pytest.approx(
+        MEASURED_MARGIN * needed_delta_chi2(big, margin=1.0))
+    # with many frequencies (64 px blocks) the held-out gain is the stricter
+    many_data = SpectralData(fy=np.zeros(2000), fx=np.zeros(2000),
+                             t_real=np.zeros(2000, complex), g_q=data.g_q[:, :1],
+                             q_grid=data.q_grid, var=np.ones(2000), n_blocks=16)
+    many = MeasuredTransfer(many_data, 2.0, 1.0, {}, chi2=40.0 * 4000)
+    assert needed_delta_chi2(many, margin=1.0) == pytest.approx(
+        MIN_CV_GAIN / (1 - MIN_CV_GAIN) * many.chi2)
+
+
+def test_measured_limit_is_stated_when_stricter():
+    q = 3.0
+    transfer_only = detection_limit(q, "detector_integration")
+    # a precise measurement: the optics' own limit holds
+    sharp = detection_limit(q, "detector_integration",
+                            measured=MeasuredTransfer.of(_measured(q, 1e-4), q, {}))
+    assert sharp.measured and sharp.measured_limit < sharp.transfer_limit
+    assert sharp.limit == pytest.approx(transfer_only.limit)
+    # a noisy measurement: the scene's own limit is wider and is the one stated
+    noisy = detection_limit(q, "detector_integration",
+                            measured=MeasuredTransfer.of(_measured(q, 0.015), q, {}))
+    assert noisy.limit == noisy.measured_limit > transfer_only.limit
+    assert noisy.absorbs(0.5 * (noisy.limit + transfer_only.limit))
+    doc = noisy.to_json()
+    assert doc["basis"] == "measured_transfer" and "measured transfer does not resolve" in \
+        doc["note"]
+    assert len(doc["predicted_delta_chi2"]) >= 8 and doc["needed_delta_chi2"] > 0
+    # at the limit the predicted evidence reaches what a claim needs
+    m = MeasuredTransfer.of(_measured(q, 0.015), q, {})
+    need = needed_delta_chi2(m)
+    assert predicted_delta_chi2(m, "detector_integration", noisy.limit * 1.006) >= need
+    assert predicted_delta_chi2(m, "detector_integration", noisy.limit / 1.006) < need
+    # so poor a measurement that no blur in range is testable
+    hopeless = detection_limit(q, "atmospheric_blur",
+                               measured=MeasuredTransfer.of(_measured(q, 30.0), q, {}))
+    assert hopeless.limit is None and "no atmospheric_blur" in hopeless.to_json()["note"]
+
+
+def test_combined_limits_need_a_majority_of_flights():
+    def flight(det, atm):
+        return {"detector_integration": {"limit": det}, "atmospheric_blur": {"limit": atm}}
+
+    flights = [flight(0.8, 1.2), flight(1.0, 0.9), flight(None, 0.5)]
+    out = combine_limits(flights, need=2, q=2.0)
+    # two flights test detectors from 1.0 px, two test atmospheres below f0 0.9
+    assert out["detector_integration"]["limit"] == 1.0
+    assert out["atmospheric_blur"]["limit"] == 0.9
+    assert out["detector_integration"]["limit_by_flight"] == [0.8, 1.0, None]
+    assert out["detector_integration"]["q"] == 2.0
+    # all three needed: the least sensitive flight; never testable in one -> never
+    assert combine_limits(flights, need=3, q=2.0)["detector_integration"]["limit"] is None
+    assert combine_limits(flights, need=3, q=2.0)["atmospheric_blur"]["limit"] == 0.5

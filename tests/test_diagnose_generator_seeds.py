@@ -61,18 +61,18 @@ def test_merge_takes_rows_by_case_recomputes_splits_and_states_limits(tmp_path):
 
     lim = {"detector_integration": {"param": "pitch_px", "limit": 9.0,
                                     "absorbed_side": "below", "q": 3.0}}
-    a = _results(tmp_path / "a.json", [_row("c00", 1000), _row("c330", 1330)])
+    a = _results(tmp_path / "a.json", [_row("c00", 1000), _row("c360", 1360)])
     b = _results(tmp_path / "b.json", [_row("c00", 1000, claimed={"haze": {}},
                                             detection_limits=lim)])
     out = tmp_path / "merged.json"
     bench.merge([a, b], str(out))
     doc = json.loads(out.read_text())
     rows = {r["case"]: r for r in doc["cases"]}
-    assert [r["case"] for r in doc["cases"]] == ["c00", "c330"]
+    assert [r["case"] for r in doc["cases"]] == ["c00", "c360"]
     assert rows["c00"]["claimed"] == {"haze": {}} and rows["c00"]["detection_limits"] == lim
-    assert rows["c00"]["split"] == "development" and rows["c330"]["split"] == "validation"
-    assert rows["c330"]["detection_limits"] == detection_limits_json(3.0)
-    assert rows["c330"]["detection_limits_restated"] is True
+    assert rows["c00"]["split"] == "development" and rows["c360"]["split"] == "validation"
+    assert rows["c360"]["detection_limits"] == detection_limits_json(3.0)
+    assert rows["c360"]["detection_limits_restated"] is True
     assert doc["halves"]["development"]["n_cases"] == 1
     assert doc["seconds_total"] == pytest.approx(3.0, abs=0.5)
     big = _results(tmp_path / "big.json", [_row("c01", 1001)], sat_px=384)
@@ -100,8 +100,15 @@ def test_stated_untestable_reads_the_rows_limits():
     s = gen.score([row])
     assert (s["recall_testable"], s["stated_untestable"], s["rows_with_limits"]) == (0.0, 1, 1)
     assert s["recall"] == 0.0 and s["stated_untestable_found"] == 0
+    # the 1.6 px detector lies beyond its limit: stated testable, and missed
+    assert (s["stated_testable"], s["stated_testable_found"]) == (1, 0)
     row["claimed"] = {"atmospheric_blur": {}}   # claimed: the report states no limit for it
     assert gen.stated_untestable(row) == set()
+    s = gen.score([row])
+    assert (s["stated_testable"], s["stated_testable_found"]) == (2, 1)
+    # an effect without a limit (no entry) is not counted
+    row["truth"]["haze"] = {}
+    assert gen.score([row])["stated_testable"] == 2
 
 
 # ------------------------------------------------------------------ implementation variants

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from geosim.diagnose.detection_limits import detection_limits_json
+from geosim.diagnose.detection_limits import combine_limits
 from geosim.diagnose.effects import get_effect
 from geosim.diagnose.select import BLUR_FAMILY
 
@@ -181,7 +181,7 @@ def combine_flights(docs: Mapping[str, Mapping[str, Any]], *, reference: str
     -------
     dict
         ``baseline``, ``effects``, ``refined``, ``ambiguities``, ``candidates_delta_bic``,
-        ``detection_limits`` (at the median refitted Q), ``per_flight_effects``,
+        ``detection_limits`` (testable in a majority of flights), ``per_flight_effects``,
         ``not_carried`` and ``combination`` (the rule), in the
         top-level schema of diagnosis.json.
     """
@@ -267,7 +267,8 @@ def combine_flights(docs: Mapping[str, Mapping[str, Any]], *, reference: str
     return {
         "baseline": base, "effects": effects, "refined": refined,
         "ambiguities": ambiguities, "candidates_delta_bic": cand,
-        "detection_limits": detection_limits_json(rq),
+        "detection_limits": combine_limits([docs[f].get("detection_limits", {}) for f in ids],
+                                           need, rq),
         "per_flight_effects": per_flight, "not_carried": not_carried,
         "combination": {
             "rule": "majority", "flights": ids, "n_flights": n, "votes_needed": need,

@@ -10,7 +10,7 @@ import numpy as np
 
 from geosim.diagnose import locate
 from geosim.diagnose.context import EvalContext
-from geosim.diagnose.detection_limits import detection_limits_json
+from geosim.diagnose.detection_limits import MeasuredTransfer, detection_limits_json
 from geosim.diagnose.fit import fit_transfer
 from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.select import BlurSelection
@@ -69,7 +69,10 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
                                  "simulations as delivered (with the refined noise realisation, "
                                  "rounded to whole DN when the real scene is)"},
         "ambiguities": ambiguities,
-        "detection_limits": detection_limits_json(float(model.q)),  # type: ignore[arg-type]
+        # at the delivered Q, weighed by how well this scene measures the transfer
+        "detection_limits": detection_limits_json(
+            float(model.q),  # type: ignore[arg-type]
+            MeasuredTransfer.of(setup.full, float(model.q), model.blur)),  # type: ignore[arg-type]
         "withdrawn": withdrawn,
         "candidates_delta_bic": {k: float(v) for k, v in sel.tried.items()},
         "candidates_heldout_gain": {k: float(v) for k, v in sel.cv_gain.items()},
