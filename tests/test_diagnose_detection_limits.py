@@ -248,6 +248,8 @@ def test_combined_limits_need_a_majority_of_flights():
     assert out["atmospheric_blur"]["limit"] == 0.9
     assert out["detector_integration"]["limit_by_flight"] == [0.8, 1.0, None]
     assert out["detector_integration"]["q"] == 2.0
+    assert "narrower than 1.00 px is testable in fewer than 2 of 3 flights" in \
+        out["detector_integration"]["note"]
     # all three needed: the least sensitive flight; never testable in one -> never
     assert combine_limits(flights, need=3, q=2.0)["detector_integration"]["limit"] is None
     assert combine_limits(flights, need=3, q=2.0)["atmospheric_blur"]["limit"] == 0.5

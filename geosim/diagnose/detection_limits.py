@@ -433,9 +433,9 @@ def combine_limits(per_flight: list[dict[str, dict[str, Any]]], need: int, q: fl
                 else f"any {b.name} in its physical range")
         entry.update(limit=limit, basis="majority_of_flights",
                      limit_by_flight=stated,
-                     note=(f"At the median Q {q:.2f}, {what} is not testable in {need} of "
-                           f"{len(stated)} flights, the majority a claim needs: it would be "
-                           "absorbed into Q (not claimed, not excluded)"))
+                     note=(f"At the median Q {q:.2f}, {what} is testable in fewer than "
+                           f"{need} of {len(stated)} flights, the majority a claim needs: it "
+                           "would be absorbed into Q (not claimed, not excluded)"))
         out[b.name] = entry
     return out
 
