@@ -18,7 +18,7 @@ effect beside it by < 0.9 % (docs/diagnosis.md, round 9).
 the scene resolves the difference depends on how well its transfer is measured (noise,
 JPEG and moved objects lower the coherence) and on how much misfit other physics leaves
 (the claim rule asks a relative gain of the χ²). So where the measured transfer is given
-(:func:`measured_evidence`), the blur's difference from the best wider optics is also
+(:class:`MeasuredTransfer`), the blur's difference from the best wider optics is also
 weighed by that measurement: the χ² it would add to the delivered model
 (:func:`predicted_delta_chi2`, the transfer's own per-frequency variances) must reach what
 the claim rule needs (:func:`needed_delta_chi2`: the held-out gain ``MIN_CV_GAIN`` of the
@@ -188,9 +188,10 @@ def needed_delta_chi2(m: MeasuredTransfer, margin: float = MEASURED_MARGIN) -> f
     """The χ² gain the claim rule needs for one more one-parameter blur, times ``margin``.
 
     The held-out gain ``MIN_CV_GAIN`` is relative to the χ² of the model without the blur
-    (the delivered χ² plus the gain), hence ``Δχ² ≥ MIN_CV_GAIN / (1 − MIN_CV_GAIN) · χ²``;
-    ``MIN_DELTA_BIC`` is ``Δχ² / (scale · HANN_CORRELATION) − ln n_eff`` with the fit's
-    variance scale (:func:`geosim.diagnose.select.delta_bic`)."""
+    (the delivered χ² plus the blur's own Δχ²), hence
+    ``Δχ² ≥ MIN_CV_GAIN / (1 − MIN_CV_GAIN) · χ²``; ``MIN_DELTA_BIC`` is
+    ``Δχ² / (scale · HANN_CORRELATION) − ln n_eff`` with the fit's variance scale
+    (:func:`geosim.diagnose.select.delta_bic`)."""
     n_values = 2 * m.data.t_real.size
     scale = max(1.0, m.chi2 / max(n_values - 3, 1))
     by_gain = MIN_CV_GAIN / (1.0 - MIN_CV_GAIN) * m.chi2
