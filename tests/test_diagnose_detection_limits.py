@@ -235,6 +235,15 @@ def test_measured_limit_is_stated_when_stricter():
     hopeless = detection_limit(q, "atmospheric_blur",
                                measured=MeasuredTransfer.of(_measured(q, 30.0), q, {}))
     assert hopeless.limit is None and "no atmospheric_blur" in hopeless.to_json()["note"]
+    assert hopeless.to_json()["basis"] == "measured_transfer"
+    # the optics find no limit (a level no blur reaches) while the scene would: the note
+    # and basis name the optics
+    optics = detection_limit(q, "detector_integration", level=10.0,
+                             measured=MeasuredTransfer.of(_measured(q, 1e-4), q, {}))
+    assert optics.transfer_limit is None and optics.measured_limit is not None
+    doc = optics.to_json()
+    assert optics.limit is None and doc["basis"] == "transfer_difference"
+    assert "differs from a slightly wider optical PSF by less than" in doc["note"]
 
 
 def test_combined_limits_need_a_majority_of_flights():

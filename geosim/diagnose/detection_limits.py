@@ -292,8 +292,9 @@ class DetectionLimit:
 
     def to_json(self) -> dict[str, Any]:
         level = f"{100 * DETECTABLE_DIFFERENCE:g} %"
-        by_data = self.measured and (self.measured_limit is None or self.limit is None
-                                     or self.limit == self.measured_limit)
+        # which limit set the stated one (no limit at all: whichever found none)
+        by_data = self.measured and (self.measured_limit is None or (
+            self.transfer_limit is not None and self.limit == self.measured_limit))
         why = ("the scene's measured transfer does not resolve it from a slightly wider "
                "optical PSF (the χ² it would add is below what a claim needs)" if by_data
                else f"it differs from a slightly wider optical PSF by less than {level} of "
