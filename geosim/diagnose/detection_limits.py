@@ -137,12 +137,20 @@ class MeasuredTransfer:
         return cls(data, float(q), gain, dict(effects), chi2)
 
 
+def _weighted_gain(w: np.ndarray, unit: np.ndarray, target: np.ndarray
+                   ) -> tuple[float, np.ndarray]:
+    """The real g minimising Σ w |target − g · unit|², and the residual target − g · unit
+    (real or complex transfers)."""
+    g = float(np.real(np.sum(w * target * np.conj(unit)))
+              / max(float(np.real(np.sum(w * unit * np.conj(unit)))), 1e-300))
+    return g, target - g * unit
+
+
 def _best_gain(data: SpectralData, unit: np.ndarray, target: np.ndarray) -> tuple[float, float]:
     """(g, χ²) of ``target`` against g · ``unit`` with the transfer's variances (g real)."""
     w = 1.0 / data.var
-    g = float(np.sum(w * np.real(np.conj(unit) * target)) / max(np.sum(w * np.abs(unit) ** 2),
-                                                                 1e-300))
-    return g, float(np.sum(w * np.abs(target - g * unit) ** 2))
+    g, r = _weighted_gain(w, unit, target)
+    return g, float(np.sum(w * np.abs(r) ** 2))
 
 
 def predicted_delta_chi2(m: MeasuredTransfer, name: str, value: float) -> float:
@@ -334,9 +342,7 @@ def absorbed_by(limit: dict[str, Any], value: float) -> bool:
 def _best_wider_difference(target: np.ndarray, q: float) -> float:
     """max |target − g · OTF(Q')| over the band for the least-squares best Q' and g."""
     def fit(qp: float) -> tuple[float, np.ndarray]:
-        a = otf.optics_otf(_FY, _FX, q=qp)
-        g = float(np.sum(_W * target * a) / max(np.sum(_W * a * a), 1e-300))
-        r = target - g * a
+        _, r = _weighted_gain(_W, otf.optics_otf(_FY, _FX, q=qp), target)
         return float(np.sum(_W * r * r)), r
 
     res = minimize_scalar(lambda qp: fit(qp)[0], bounds=(0.5 * q, 4.0 * q),
