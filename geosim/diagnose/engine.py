@@ -165,7 +165,8 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     claims = claim_effects(inp, model.without(registration=reg, compression=found.compression,
                                               seam=found.seam, radiometry=found.radiometry),
                            sel, change, ev)
-    summary = make_summary(inp, model, sel, setup, claims, ev, refined, withdrawn)
+    summary = make_summary(inp, model, sel, setup, claims, ev, refined, withdrawn,
+                           resampling_tested="resampling" in window.candidates)
     maps = mismatch_maps(inp, model, energy)
     plots = plot_data(inp, model, sel, setup, ev, refined, summary)
     return Diagnosis(summary=summary, real=inp.real, baseline=inp.base, refined=refined,

@@ -22,7 +22,7 @@ import numpy as np
 __all__ = [
     "CrossSpectrum", "block_origins", "screen_blocks", "cross_spectrum", "frequency_angle_deg",
     "polar_bin_mean", "power_spectrum", "radial_profile", "directional_profiles",
-    "spectral_error", "hann2d",
+    "spectral_error", "log_power_ratio", "rms_finite", "hann2d",
 ]
 
 
@@ -278,6 +278,24 @@ def spectral_error(sim: np.ndarray | list[np.ndarray], real: np.ndarray, *,
     ``sim`` may be a list of 2-D images (noise realisations of one model): their Welch
     powers are averaged, an estimate of the model's *expected* spectrum.
     """
+    ratio = log_power_ratio(sim, real, valid=valid, block_px=block_px, n_radial=n_radial,
+                            n_angular=n_angular, origins=origins)
+    return rms_finite(ratio)
+
+
+def rms_finite(ratio: np.ndarray) -> float:
+    """RMS of the finite entries of ``ratio`` (a :func:`log_power_ratio`): the spectral
+    error."""
+    ratio = ratio[np.isfinite(ratio)]
+    return float(np.sqrt(np.mean(ratio**2)))
+
+
+def log_power_ratio(sim: np.ndarray | list[np.ndarray], real: np.ndarray, *,
+                    valid: np.ndarray | None = None, block_px: int = 32, n_radial: int = 12,
+                    n_angular: int = 8, origins: list[tuple[int, int]] | None = None
+                    ) -> np.ndarray:
+    """log10(P_sim / P_real) per radial × angular bin, (n_angular, n_radial), NaN where a
+    bin is empty: the terms of :func:`spectral_error` (same arguments)."""
     sims = sim if isinstance(sim, list) else [sim]
     r = np.asarray(real, dtype=float)
     s_ss = None
@@ -289,5 +307,6 @@ def spectral_error(sim: np.ndarray | list[np.ndarray], real: np.ndarray, *,
                                  n_angular=n_angular)
     _, _, pr, _ = polar_bin_mean(cs.s_rr, cs.fy, cs.fx, n_radial=n_radial, n_angular=n_angular)
     ok = np.isfinite(ps) & np.isfinite(pr)
-    ratio = np.log10(np.maximum(ps[ok], 1e-20) / np.maximum(pr[ok], 1e-20))
-    return float(np.sqrt(np.mean(ratio**2)))
+    ratio = np.full(ps.shape, np.nan)
+    ratio[ok] = np.log10(np.maximum(ps[ok], 1e-20) / np.maximum(pr[ok], 1e-20))
+    return ratio

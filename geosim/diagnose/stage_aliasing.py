@@ -10,6 +10,7 @@ import numpy as np
 from geosim.diagnose.context import EvalContext
 from geosim.diagnose.fit import evaluate_chi2, fit_transfer
 from geosim.diagnose.model import ForwardModel
+from geosim.diagnose.resampling_limit import ResamplingLimit, resampling_limit
 from geosim.diagnose.select import (
     AcceptedEffect,
     BlurSelection,
@@ -24,7 +25,8 @@ from geosim.diagnose.stage_inputs import Inputs, greys
 from geosim.diagnose.stage_noise import realisations
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
-__all__ = ["aliasing_test", "ALIASING_SPECTRAL_GAIN", "ALIASING_SPECTRAL_GAIN_SPLIT"]
+__all__ = ["aliasing_test", "split_halves", "resampling_detection_limit",
+           "ALIASING_SPECTRAL_GAIN", "ALIASING_SPECTRAL_GAIN_SPLIT"]
 
 #: resampling not chosen by the transfer fit is still claimed when its aliasing, which the
 #: transfer fit does not see, brings the refined power spectrum this much closer (fraction
@@ -33,6 +35,15 @@ ALIASING_SPECTRAL_GAIN = 0.8
 #: the same for a native pitch fitted on the power spectrum: on each held-out half of the
 #: blocks (pitch chosen on the other half)
 ALIASING_SPECTRAL_GAIN_SPLIT = 0.9
+
+
+def split_halves(origins: list[tuple[int, int]], block_px: int, cols: int
+                 ) -> list[list[tuple[int, int]]] | None:
+    """Route 2's two halves of the Welch blocks: left and right of the scene's middle
+    column (by block centre); None when either holds fewer than two blocks."""
+    halves = [[o for o in origins if o[1] + block_px / 2 < cols / 2],
+              [o for o in origins if o[1] + block_px / 2 >= cols / 2]]
+    return None if min(len(h) for h in halves) < 2 else halves
 
 
 def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
@@ -84,10 +95,8 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
             sel.final = fit
             return with_r
     # route 2: the native pitch from the power spectrum, validated on split halves
-    cols = inp.valid.shape[1]
-    halves = [[o for o in ev.origins if o[1] + setup.block_px / 2 < cols / 2],
-              [o for o in ev.origins if o[1] + setup.block_px / 2 >= cols / 2]]
-    if min(len(h) for h in halves) < 2:
+    halves = split_halves(ev.origins, setup.block_px, inp.valid.shape[1])
+    if halves is None:
         return model
 
     def se_on(img: list[np.ndarray], origins: list[tuple[int, int]]) -> float:
@@ -130,3 +139,24 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     sel.cv_gain[name] = float(min(heldout))
     sel.final = step_fit
     return model.without(blur=eff)
+
+
+def resampling_detection_limit(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
+                               ev: EvalContext) -> ResamplingLimit:
+    """The native pitch from which a resampling is testable on this scene
+    (:func:`geosim.diagnose.resampling_limit.resampling_limit`): on route 2's halves of
+    ``ev``'s blocks against its held-out gain, or, with too few blocks for halves, on all
+    of them against route 1's. The renders are ``model`` as delivered (noise realisations
+    from ``ev.noise_seed`` where noise is claimed) without any resampling it holds, and
+    with each tested one."""
+    base = model.without(blur={k: v for k, v in model.blur.items() if k != "resampling"})
+
+    def render(params: dict[str, float] | None) -> list[np.ndarray]:
+        m = base if params is None else base.without(blur={**base.blur, "resampling": params})
+        return greys(realisations(inp, m, ev.noise_seed))
+
+    halves = split_halves(ev.origins, setup.block_px, inp.valid.shape[1])
+    sets, need = ((halves, 1.0 - ALIASING_SPECTRAL_GAIN_SPLIT) if halves is not None
+                  else ([ev.origins], 1.0 - ALIASING_SPECTRAL_GAIN))
+    return resampling_limit(render, inp.grey, sets, block_px=setup.block_px,
+                            q=float(model.q), need=need)

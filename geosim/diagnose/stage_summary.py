@@ -15,6 +15,7 @@ from geosim.diagnose.fit import fit_transfer
 from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.select import BlurSelection
 from geosim.diagnose.spectra import cross_spectrum, radial_profile
+from geosim.diagnose.stage_aliasing import resampling_detection_limit
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs, grey, rmse
 from geosim.diagnose.stage_jpeg import blockiness
@@ -38,11 +39,13 @@ def _ambiguity_note(claim: Claim) -> str:
 
 def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
                  claims: list[Claim], ev: EvalContext, refined: np.ndarray,
-                 withdrawn: list[dict[str, str]]) -> dict[str, Any]:
+                 withdrawn: list[dict[str, str]], *, resampling_tested: bool = True
+                 ) -> dict[str, Any]:
     """The JSON-able summary written to ``diagnosis.json`` (baseline, effects, refined
     fit, ambiguities, detection limits at the delivered Q, withdrawals, candidates,
     co-registration, noise, settings); RMSEs
-    over ``ev.mask``, spectral errors on ``ev``'s blocks."""
+    over ``ev.mask``, spectral errors on ``ev``'s blocks. ``resampling_tested``: whether
+    resampling was among the candidates (its detection limit is then stated too)."""
     eval_mask, se_of = ev.mask, ev.spectral_error
     base_rmse = rmse(inp.base, inp.real, eval_mask)
     base_se = se_of(np.round(inp.base) if inp.quantized else inp.base)
@@ -53,6 +56,13 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
     reg, n = model.registration, model.noise
     qs = sel.final.sigmas.get("q", float("nan"))
     q_grid = setup.q_grid
+    # at the delivered Q, weighed by how well this scene measures the transfer (and, for
+    # resampling, its power spectrum)
+    limits = detection_limits_json(
+        float(model.q),  # type: ignore[arg-type]
+        MeasuredTransfer.of(setup.full, float(model.q), model.blur))  # type: ignore[arg-type]
+    if resampling_tested:
+        limits["resampling"] = resampling_detection_limit(inp, model, setup, ev).to_json()
     return {
         "baseline": {"q": inp.q_base, "lv_satellite": locate.laplacian_variance(inp.grey,
                                                                                 inp.valid),
@@ -69,10 +79,7 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
                                  "simulations as delivered (with the refined noise realisation, "
                                  "rounded to whole DN when the real scene is)"},
         "ambiguities": ambiguities,
-        # at the delivered Q, weighed by how well this scene measures the transfer
-        "detection_limits": detection_limits_json(
-            float(model.q),  # type: ignore[arg-type]
-            MeasuredTransfer.of(setup.full, float(model.q), model.blur)),  # type: ignore[arg-type]
+        "detection_limits": limits,
         "withdrawn": withdrawn,
         "candidates_delta_bic": {k: float(v) for k, v in sel.tried.items()},
         "candidates_heldout_gain": {k: float(v) for k, v in sel.cv_gain.items()},
