@@ -24,6 +24,7 @@ from geosim.diagnose.combine import combine_flights  # noqa: E402
 from geosim.diagnose.engine import diagnose_arrays  # noqa: E402
 from geosim.diagnose.grids import calibrate_q_lv  # noqa: E402
 from geosim.diagnose.report_markdown import diagnosis_markdown  # noqa: E402
+from geosim.diagnose.resampling_limit import PITCHES  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
 
@@ -100,6 +101,12 @@ def test_detector_under_a_wide_psf_is_stated_untestable_not_absent():
     assert lim["limit"] > 1.2, lim
     assert se_ref <= se_base + 1e-9
     assert f"narrower than {lim['limit']:.2f} px" in diagnosis_markdown(d.summary)
+    # resampling's limit, measured on the scene's spectrum at the same Q
+    res = d.summary["detection_limits"]["resampling"]
+    assert (res["param"], res["basis"], res["q"]) == ("native_pitch_px", "measured_spectrum",
+                                                      lim["q"])
+    assert [p for p, _ in res["predicted_spectral_gain"]] == list(PITCHES)
+    assert res["limit"] is None or PITCHES[0] <= res["limit"] <= PITCHES[-1]
 
 
 def test_benchmark_scoring_counts_exact_names():
@@ -198,6 +205,8 @@ def test_jpeg_at_high_q_is_not_called_resampling():
     assert comb["votes"] == "2/2" and comb["delta_bic"] == pytest.approx(c["delta_bic"])
     # the combined verdict states its detection limits at its own (median) Q
     assert out["detection_limits"]["detector_integration"]["q"] == out["refined"]["q"]
+    own = d.summary["detection_limits"]["resampling"]["limit"]
+    assert out["detection_limits"]["resampling"]["limit_by_flight"] == [own, own]
     assert f"block-edge step test χ² = {c['delta_bic']:.3g}" in diagnosis_markdown(d.summary)
 
 

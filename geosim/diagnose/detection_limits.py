@@ -423,39 +423,62 @@ def combine_limits(per_flight: list[dict[str, dict[str, Any]]], need: int, q: fl
                    ) -> dict[str, dict[str, Any]]:
     """The detection limits of a majority verdict over flights.
 
-    A blur is claimed when ``need`` flights claim it, so it is testable in the combination
-    where it is testable in ``need`` flights: the limit is the ``need``-th most sensitive of
-    the flights' stated limits (None, never testable, the least sensitive). Flights without
-    limits count as stating the transfer limit at ``q`` (the median refitted Q)."""
+    An effect is claimed when ``need`` flights claim it, so it is testable in the
+    combination where it is testable in ``need`` flights: the limit is the ``need``-th most
+    sensitive of the flights' stated limits (None, never testable, the least sensitive).
+    Flights without limits count as stating the isotropic blurs' transfer limit at ``q``
+    (the median refitted Q); resampling (its limit is measured on each scene's spectrum) is
+    combined where some flight states it, the others counting as never testable."""
     at_q = detection_limits_json(q)
     out: dict[str, dict[str, Any]] = {}
     for b in ISOTROPIC_LIMITS:
         stated = [(d.get(b.name) or at_q[b.name])["limit"] for d in per_flight] or \
                  [at_q[b.name]["limit"]]
-        # most sensitive first: the lowest detector width, the highest atmospheric f0
-        known = sorted((v for v in stated if v is not None), reverse=not b.weaker_is_low)
-        ordered = known + [None] * (len(stated) - len(known))
-        limit = ordered[min(need, len(ordered)) - 1]
-        entry = dict(at_q[b.name])
+        limit = _majority(stated, need, most_sensitive_low=b.weaker_is_low)
         what = (b.absorbed_words.format(v=limit) if limit is not None
                 else f"any {b.name} in its physical range")
-        entry.update(limit=limit, basis="majority_of_flights",
-                     limit_by_flight=stated,
-                     note=(f"At the median Q {q:.2f}, {what} is testable in fewer than "
-                           f"{need} of {len(stated)} flights, the majority a claim needs: it "
-                           "would be absorbed into Q (not claimed, not excluded)"))
-        out[b.name] = entry
+        out[b.name] = _combined(at_q[b.name], stated, limit, need, q, what,
+                                "it would be absorbed into Q")
+    resampling = [d.get("resampling") for d in per_flight]
+    first = next((r for r in resampling if r), None)
+    if first is not None:
+        stated = [r["limit"] if r else None for r in resampling]
+        limit = _majority(stated, need, most_sensitive_low=True)
+        what = (f"a resampling from a native grid finer than {limit:.2f} px"
+                if limit is not None else "any resampling")
+        out["resampling"] = _combined(first, stated, limit, need, q, what,
+                                      "its aliasing would not be resolved")
     return out
+
+
+def _majority(stated: list[float | None], need: int, *, most_sensitive_low: bool
+              ) -> float | None:
+    """The ``need``-th most sensitive of the flights' limits (None: never testable)."""
+    known = sorted((v for v in stated if v is not None), reverse=not most_sensitive_low)
+    ordered = known + [None] * (len(stated) - len(known))
+    return ordered[min(need, len(ordered)) - 1]
+
+
+def _combined(template: dict[str, Any], stated: list[float | None], limit: float | None,
+              need: int, q: float, what: str, consequence: str) -> dict[str, Any]:
+    """A combined limit entry: ``template``'s fields with the majority's limit and note."""
+    entry = dict(template)
+    entry.update(limit=limit, q=q, basis="majority_of_flights", limit_by_flight=stated,
+                 note=(f"At the median Q {q:.2f}, {what} is testable in fewer than {need} "
+                       f"of {len(stated)} flights, the majority a claim needs: "
+                       f"{consequence} (not claimed, not excluded)"))
+    return entry
 
 
 def limits_markdown(limits: dict[str, dict[str, Any]],
                     claimed: Iterable[str] = ()) -> list[str]:
-    """The report's lines on what the scene cannot test (from ``detection_limits``); a blur
-    the diagnosis claimed is left out (the data showed it, whatever its fitted width)."""
+    """The report's lines on what the scene cannot test (from ``detection_limits``); an
+    effect the diagnosis claimed is left out (the data showed it, whatever its fitted
+    size)."""
     shown = [lim for name, lim in limits.items() if name not in set(claimed)]
     if not shown:
         return []
     return (["\n## What this scene cannot test\n"]
             + [f"- {lim['note']}." for lim in shown]
-            + ["\nSuch a blur is not claimed whether or not the satellite has it; the "
-               "refitted Q then includes it."])
+            + ["\nSuch an effect is not claimed whether or not the satellite has it (for a "
+               "blur, the refitted Q then includes it)."])

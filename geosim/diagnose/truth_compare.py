@@ -59,16 +59,19 @@ def compare_with_truth(doc: dict[str, Any], truth: dict[str, Any]) -> list[dict[
 
 
 def _limit_note(lim: dict[str, Any], truth: dict[str, Any]) -> str | None:
-    """Whether a missed isotropic blur's true value lies on the absorbed side of the
-    detection limit the diagnosis stated (``diagnosis.json``'s ``detection_limits``)."""
+    """Whether a missed effect's true value lies on the untestable side of the detection
+    limit the diagnosis stated (``diagnosis.json``'s ``detection_limits``): an isotropic
+    blur absorbed into Q, a resampling whose aliasing the spectrum does not resolve."""
     value = truth.get(lim["param"])
     if value is None:
         return None
+    why = ("aliasing not resolved by the scene's spectrum" if lim["param"] ==
+           "native_pitch_px" else "absorbed into Q")
     if lim["limit"] is None:
-        return f"not testable at Q {lim['q']:.2f}: absorbed into Q"
+        return f"not testable at Q {lim['q']:.2f}: {why}"
     where = f"stated detection limit {lim['param']} {lim['limit']:.2f} at Q {lim['q']:.2f}"
     if absorbed_by(lim, value):
-        return f"below the {where}: absorbed into Q"
+        return f"below the {where}: {why}"
     return f"missed, though beyond the {where}"
 
 

@@ -1,0 +1,168 @@
+"""The resampling detection limit: a native pitch is testable where the aliasing it would add
+brings the scene's power spectrum clearly closer.
+
+The predicted gain is checked against the RMS formula on hand-made bin vectors, the limit
+against hand-made curves, and the whole measurement on synthetic scenes whose resampling
+is rendered here with OpenCV (area down to the native grid, bicubic back up; not geosim's
+renderer), for the properties it must have: a model that matches the scene leaves every
+pitch testable, white noise in the scene raises the limit, a larger margin never lowers it.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+import pytest
+
+from geosim.diagnose.detection_limits import combine_limits, limits_markdown
+from geosim.diagnose.resampling_limit import (
+    KERNELS,
+    PITCHES,
+    ResamplingLimit,
+    limit_from_curve,
+    predicted_spectral_gain,
+    resampling_limit,
+)
+from geosim.diagnose.spectra import block_origins, log_power_ratio, spectral_error
+from geosim.diagnose.truth_compare import _limit_note
+
+
+def test_predicted_gain_is_the_drop_of_the_rms():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(8, 12))
+    # a model that matches the scene: the resampling would explain all of its change
+    assert predicted_spectral_gain(np.zeros_like(d), d) == pytest.approx(1.0)
+    # a residual orthogonal to the change and as large: RMS(e - d) = √2 RMS(e)
+    e = np.zeros((8, 12))
+    e[0, :6], d2 = 1.0, np.zeros((8, 12))
+    d2[0, 6:] = 1.0
+    assert predicted_spectral_gain(e, d2) == pytest.approx(1.0 - 1.0 / np.sqrt(2.0))
+    # empty bins (NaN in either) are left out
+    e2, d3 = e.copy(), d2.copy()
+    e2[5, :], d3[6, :] = np.nan, np.nan
+    assert predicted_spectral_gain(e2, d3) == pytest.approx(1.0 - 1.0 / np.sqrt(2.0))
+    # a change the residual already holds: the scene would move away, the gain is negative
+    assert predicted_spectral_gain(d2, d2 * 0.5) < 0.0
+
+
+def test_spectral_error_is_the_rms_of_the_log_power_ratio():
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(96, 96)), rng.normal(size=(96, 96)).cumsum(axis=1)
+    origins = block_origins(a.shape, block_px=32)
+    r = log_power_ratio(a, b, block_px=32, origins=origins)
+    assert r.shape == (8, 12)
+    ok = np.isfinite(r)
+    assert spectral_error(a, b, block_px=32, origins=origins) == \
+        float(np.sqrt(np.mean(r[ok] ** 2)))
+
+
+@pytest.mark.parametrize(("gains", "need", "expected"), [
+    ((0.0, 0.05, 0.15, 0.3), 0.1, 1.1 + 0.1 * 0.5),      # crossing between 1.1 and 1.2
+    ((0.2, 0.3, 0.4, 0.5), 0.1, 1.0),                    # every pitch passes
+    ((0.0, 0.05, 0.08, 0.09), 0.1, None),                # none does
+    ((0.3, 0.05, 0.2, 0.4), 0.1, 1.1 + 0.1 * 0.05 / 0.15),  # a dip: above it only
+])
+def test_limit_from_curve(gains, need, expected):
+    curve = tuple(zip((1.0, 1.1, 1.2, 1.3), gains, strict=True))
+    got = limit_from_curve(curve, need)
+    assert got == (None if expected is None else pytest.approx(expected))
+
+
+def _texture(n: int, seed: int) -> np.ndarray:
+    """A scene with a natural 1/f² power spectrum, blurred as optics would, 8-bit range."""
+    rng = np.random.default_rng(seed)
+    f = np.hypot(np.fft.fftfreq(n)[:, None], np.fft.fftfreq(n)[None, :])
+    amp = 1.0 / np.maximum(f, 1.0 / n) * np.exp(-(f / 0.3) ** 2)
+    img = np.real(np.fft.ifft2(amp * np.exp(2j * np.pi * rng.random((n, n)))))
+    return 120.0 + 40.0 * img / img.std()
+
+
+def _resampled(img: np.ndarray, pitch: float) -> np.ndarray:
+    """The product grid → a native grid ``pitch`` times coarser (area) → bicubic back."""
+    n = img.shape[0]
+    m = int(round(n / pitch))
+    small = cv2.resize(img, (m, m), interpolation=cv2.INTER_AREA)
+    return cv2.resize(small, (n, n), interpolation=cv2.INTER_CUBIC)
+
+
+@functools.cache
+def _limit(noise_dn: float, margin: float = 1.0) -> ResamplingLimit:
+    model = _texture(128, 3)
+    rng = np.random.default_rng(4)
+    real = model + rng.normal(0.0, noise_dn, model.shape)
+
+    def render(params):
+        img = model if params is None else _resampled(model, params["native_pitch_px"])
+        # the model's expected spectrum with the scene's noise: mean of realisations
+        return [img + np.random.default_rng(10 + k).normal(0.0, noise_dn, img.shape)
+                for k in range(4)]
+
+    origins = block_origins(real.shape, block_px=32)
+    halves = [[o for o in origins if o[1] < 48], [o for o in origins if o[1] >= 48]]
+    return resampling_limit(render, real, halves, block_px=32, q=2.0, need=0.1, margin=margin)
+
+
+def test_limit_on_synthetic_scenes():
+    clean = _limit(0.0)
+    # the model is the scene: any resampling would be all the difference
+    assert clean.limit == PITCHES[0]
+    assert [p for p, _ in clean.curve] == list(PITCHES)
+    assert all(g > 0.5 for _, g in clean.curve), clean.curve
+    # white noise fills the high frequencies where the resampling acts: the predicted gain
+    # falls at every pitch as it grows, and the limit rises until no pitch is testable
+    by_noise = [_limit(n) for n in (5.0, 20.0, 35.0, 40.0, 50.0)]
+    for a, b in zip([clean, *by_noise], by_noise, strict=False):
+        assert all(gb < ga for (_, ga), (_, gb) in zip(a.curve, b.curve, strict=True))
+    limits = [lim.limit for lim in by_noise]
+    assert limits[:2] == [PITCHES[0]] * 2 and limits[-1] is None, limits
+    assert PITCHES[0] < limits[2] < limits[3] < PITCHES[-1], limits
+    # a larger margin asks more of the same curve
+    for noise in (5.0, 20.0):
+        lo, hi = _limit(noise, 1.0), _limit(noise, 8.0)
+        assert hi.needed_gain == pytest.approx(8.0 * lo.needed_gain)
+        assert hi.curve == lo.curve
+        assert hi.limit is None or (lo.limit is not None and hi.limit >= lo.limit)
+
+
+def test_json_note_and_absorbs():
+    lim = ResamplingLimit(1.42, 3.1, 0.1, tuple((p, 0.0) for p in PITCHES))
+    assert lim.absorbs(1.3) and not lim.absorbs(1.6)
+    doc = lim.to_json()
+    assert (doc["param"], doc["absorbed_side"], doc["basis"]) == \
+        ("native_pitch_px", "below", "measured_spectrum")
+    assert doc["kernels_cubic_a"] == list(KERNELS) and len(doc["predicted_spectral_gain"]) == 8
+    assert "finer than 1.42 px is not testable" in doc["note"]
+    none = ResamplingLimit(None, 3.1, 0.1, ()).to_json()
+    assert none["limit"] is None and "no resampling with a native pitch up to 2.00 px" in \
+        none["note"]
+    assert ResamplingLimit(None, 3.1, 0.1, ()).absorbs(2.5)
+    # the report lists it unless resampling was claimed
+    text = "\n".join(limits_markdown({"resampling": doc}))
+    assert "finer than 1.42 px" in text and "Such an effect is not claimed" in text
+    assert limits_markdown({"resampling": doc}, claimed=["resampling"]) == []
+    # a truth comparison sets a missed resampling against it
+    assert _limit_note(doc, {"native_pitch_px": 1.3}) == (
+        "below the stated detection limit native_pitch_px 1.42 at Q 3.10: aliasing not "
+        "resolved by the scene's spectrum")
+    assert _limit_note(doc, {"native_pitch_px": 1.6}).startswith("missed, though beyond")
+
+
+def test_combined_over_flights():
+    def res(limit):
+        return {"resampling": ResamplingLimit(limit, 2.0, 0.1, ()).to_json()}
+
+    flights = [res(1.3), res(1.6), res(None)]
+    out = combine_limits(flights, need=2, q=2.5)
+    r = out["resampling"]
+    # two flights test resampling from 1.6 px; the one that tests none counts last
+    assert r["limit"] == 1.6 and r["limit_by_flight"] == [1.3, 1.6, None]
+    assert r["basis"] == "majority_of_flights" and r["q"] == 2.5
+    assert "finer than 1.60 px is testable in fewer than 2 of 3 flights" in r["note"]
+    assert combine_limits(flights, need=3, q=2.5)["resampling"]["limit"] is None
+    # a flight that states no resampling limit (an older diagnosis.json) counts as none
+    older = combine_limits([res(1.3), {}], need=1, q=2.5)["resampling"]
+    assert older["limit"] == 1.3 and older["limit_by_flight"] == [1.3, None]
+    # no flight states one: no entry
+    assert "resampling" not in combine_limits([{}, {}], need=1, q=2.5)
