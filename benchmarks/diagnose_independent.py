@@ -4,14 +4,15 @@ The "real" satellite scenes come from ``benchmarks/diagnose_generator.py``, whic
 imports nothing from geosim (each effect written again from its physics, blur applied
 on the 0.05 m grid before sampling). Cases come from every real image in
 ``../shared/realdata`` and the sample site, phi = 10, Q from 0.8 to 4.5, 0-3 effects,
-every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1351 (thresholds are
+every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-1383 (thresholds are
 tuned on these only; each earlier round's validation half was seen in its final report, so
-it joined development). Validation half (round 11, fresh): the 32 seeds 1352-1383, run only
+it joined development). Validation half (round 12, fresh): the 32 seeds 1384-1415, run only
 for the final report. The diagnosis sees the
 UAV image and the scene, calibrates Q by Laplacian variance, and is scored by the
 benchmark's own measures (exact effect names; its own spectral error). Each row also
 records the tool's ``detection_limits`` (the isotropic blurs it states would be absorbed
-into Q at its delivered Q); the score adds the recall over the true effects it did not
+into Q at its delivered Q, and the native pitch below which it states a resampling's
+aliasing unresolved); the score adds the recall over the true effects it did not
 declare untestable, and how many it declared untestable but found anyway.
 
 Development extension (tuning allowed): seeds 5000-5999, cases with a forced effect set and
@@ -65,10 +66,10 @@ SAMPLES = ROOT / "data" / "samples"
 #: the halves' results (128 px scenes); other runs write elsewhere
 HALVES_FILE = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
 SEEDS_NOTE = (f"1000 + i; development 1000-{gen.VALIDATION_FIRST_SEED - 1}, validation "
-              f"{gen.VALIDATION_FIRST_SEED}-{gen.VALIDATION_LAST_SEED} (round 11)")
-N_VALIDATION_LAST = 383
-#: case indices (seed 1000 + i) of the two halves (round 11: development 0-351,
-#: validation 352-383)
+              f"{gen.VALIDATION_FIRST_SEED}-{gen.VALIDATION_LAST_SEED} (round 12)")
+N_VALIDATION_LAST = 415
+#: case indices (seed 1000 + i) of the two halves (round 12: development 0-383,
+#: validation 384-415)
 DEVELOPMENT = [i for i in range(N_VALIDATION_LAST + 1) if not gen.is_validation_seed(1000 + i)]
 VALIDATION = [i for i in range(N_VALIDATION_LAST + 1) if gen.is_validation_seed(1000 + i)]
 N_CASES = len(DEVELOPMENT)
@@ -186,8 +187,10 @@ def fmt_summary(name: str, s: dict[str, Any]) -> str:
             f"{s['refined_above_baseline']}/{s['n_cases']}; recall over effects not stated "
             f"untestable {s['recall_testable']:.2f} ({s['stated_untestable']} stated "
             f"untestable, {s['stated_untestable_found']} of them found; limits in "
-            f"{s['rows_with_limits']}/{s['n_cases']} rows); isotropic blurs stated testable "
-            f"found {s['stated_testable_found']}/{s['stated_testable']}")
+            f"{s['rows_with_limits']}/{s['n_cases']} rows); effects stated testable "
+            f"found {s['stated_testable_found']}/{s['stated_testable']} ("
+            + ", ".join(f"{k} {f}/{t}" for k, (t, f) in
+                        sorted(s.get("stated_testable_by_effect", {}).items())) + ")")
 
 
 def main() -> None:

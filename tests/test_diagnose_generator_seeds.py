@@ -61,18 +61,18 @@ def test_merge_takes_rows_by_case_recomputes_splits_and_states_limits(tmp_path):
 
     lim = {"detector_integration": {"param": "pitch_px", "limit": 9.0,
                                     "absorbed_side": "below", "q": 3.0}}
-    a = _results(tmp_path / "a.json", [_row("c00", 1000), _row("c360", 1360)])
+    a = _results(tmp_path / "a.json", [_row("c00", 1000), _row("c390", 1390)])
     b = _results(tmp_path / "b.json", [_row("c00", 1000, claimed={"haze": {}},
                                             detection_limits=lim)])
     out = tmp_path / "merged.json"
     bench.merge([a, b], str(out))
     doc = json.loads(out.read_text())
     rows = {r["case"]: r for r in doc["cases"]}
-    assert [r["case"] for r in doc["cases"]] == ["c00", "c360"]
+    assert [r["case"] for r in doc["cases"]] == ["c00", "c390"]
     assert rows["c00"]["claimed"] == {"haze": {}} and rows["c00"]["detection_limits"] == lim
-    assert rows["c00"]["split"] == "development" and rows["c360"]["split"] == "validation"
-    assert rows["c360"]["detection_limits"] == detection_limits_json(3.0)
-    assert rows["c360"]["detection_limits_restated"] is True
+    assert rows["c00"]["split"] == "development" and rows["c390"]["split"] == "validation"
+    assert rows["c390"]["detection_limits"] == detection_limits_json(3.0)
+    assert rows["c390"]["detection_limits_restated"] is True
     assert doc["halves"]["development"]["n_cases"] == 1
     assert doc["seconds_total"] == pytest.approx(3.0, abs=0.5)
     big = _results(tmp_path / "big.json", [_row("c01", 1001)], sat_px=384)
@@ -106,9 +106,18 @@ def test_stated_untestable_reads_the_rows_limits():
     assert gen.stated_untestable(row) == set()
     s = gen.score([row])
     assert (s["stated_testable"], s["stated_testable_found"]) == (2, 1)
+    assert s["stated_testable_by_effect"] == {"atmospheric_blur": [1, 1],
+                                              "detector_integration": [1, 0]}
     # an effect without a limit (no entry) is not counted
     row["truth"]["haze"] = {}
     assert gen.score([row])["stated_testable"] == 2
+    # resampling's limit (a native pitch, measured on the spectrum) reads the same way
+    row["detection_limits"]["resampling"] = {"param": "native_pitch_px", "limit": 1.4,
+                                             "absorbed_side": "below"}
+    row["truth"]["resampling"] = {"native_pitch_px": 1.3}
+    assert gen.stated_untestable(row) == {"resampling"}
+    row["truth"]["resampling"]["native_pitch_px"] = 1.5
+    assert gen.score([row])["stated_testable_by_effect"]["resampling"] == [1, 0]
 
 
 # ------------------------------------------------------------------ implementation variants

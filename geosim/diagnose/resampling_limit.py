@@ -41,8 +41,12 @@ __all__ = ["RESAMPLING_MARGIN", "PITCHES", "KERNELS", "ResamplingLimit",
            "predicted_spectral_gain", "limit_from_curve", "resampling_limit"]
 
 #: how far the predicted held-out gain must exceed the gain a claim needs for a native
-#: pitch to be stated testable (set on the development half; docs/diagnosis.md, round 12)
-RESAMPLING_MARGIN = 1.0
+#: pitch to be stated testable. Set on the independent benchmark's development half (the
+#: 74 rows of seeds 1000-1351 with a true resampling; docs/diagnosis.md, round 12) as the
+#: smallest of 1, 1.5, 2, 3, 4, 6, 8 at which >= 90 % of those stated testable were found
+#: (1: 52/60, 2: 50/57, 3: 47/51, 4: 37/38). The prediction stacks the resampling on the
+#: scene as it is, so where one is there unclaimed it is optimistic
+RESAMPLING_MARGIN = 3.0
 #: native pitches (0.5 m product pixels) at which the predicted gain is evaluated: the
 #: range route 2 scans (1.15-2.0 px)
 PITCHES = (1.15, 1.25, 1.35, 1.45, 1.55, 1.7, 1.85, 2.0)
