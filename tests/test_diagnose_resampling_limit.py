@@ -26,6 +26,7 @@ from geosim.diagnose.resampling_limit import (
     resampling_limit,
 )
 from geosim.diagnose.spectra import block_origins, log_power_ratio, spectral_error
+from geosim.diagnose.stage_withdraw import native_nyquist_floor_px, optics_pass_native_nyquist
 from geosim.diagnose.truth_compare import _limit_note
 
 
@@ -88,7 +89,8 @@ def _resampled(img: np.ndarray, pitch: float) -> np.ndarray:
 
 
 @functools.cache
-def _limit(noise_dn: float, margin: float = 1.0) -> ResamplingLimit:
+def _limit(noise_dn: float, margin: float = 1.0, floor: float | None = None
+           ) -> ResamplingLimit:
     model = _texture(128, 3)
     rng = np.random.default_rng(4)
     real = model + rng.normal(0.0, noise_dn, model.shape)
@@ -101,7 +103,8 @@ def _limit(noise_dn: float, margin: float = 1.0) -> ResamplingLimit:
 
     origins = block_origins(real.shape, block_px=32)
     halves = [[o for o in origins if o[1] < 48], [o for o in origins if o[1] >= 48]]
-    return resampling_limit(render, real, halves, block_px=32, q=2.0, need=0.1, margin=margin)
+    return resampling_limit(render, real, halves, block_px=32, q=2.0, need=0.1, margin=margin,
+                            rule_floor_px=floor)
 
 
 def test_limit_on_synthetic_scenes():
@@ -124,6 +127,25 @@ def test_limit_on_synthetic_scenes():
         assert hi.needed_gain == pytest.approx(8.0 * lo.needed_gain)
         assert hi.curve == lo.curve
         assert hi.limit is None or (lo.limit is not None and hi.limit >= lo.limit)
+
+
+def test_jpeg_rule_floor():
+    """Under JPEG the diagnosis withdraws a resampling whose native Nyquist the optics do
+    not reach (pitch ≤ Q / 2): the stated limit is never below that, and the floor does not
+    make a scene that tests nothing testable."""
+    assert native_nyquist_floor_px(3.4) == pytest.approx(1.7)
+    assert not optics_pass_native_nyquist(3.4, 1.7) and optics_pass_native_nyquist(3.4, 1.71)
+    clean = _limit(0.0)
+    model = _texture(128, 3)
+    origins = block_origins(model.shape, block_px=32)
+    got = resampling_limit(lambda p: [model if p is None else
+                                      _resampled(model, p["native_pitch_px"])],
+                           model, [origins], block_px=32, q=3.4, need=0.2,
+                           rule_floor_px=1.7)
+    assert clean.limit == PITCHES[0] and got.limit == pytest.approx(1.7)
+    assert got.rule_floor_px == 1.7 and got.to_json()["rule_floor_px"] == 1.7
+    assert "under JPEG the optics at this Q pass nothing" in got.to_json()["note"]
+    assert _limit(50.0, floor=1.7).limit is None and _limit(5.0, floor=1.7).limit == 1.7
 
 
 def test_json_note_and_absorbs():

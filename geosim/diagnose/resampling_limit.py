@@ -117,6 +117,10 @@ class ResamplingLimit:
     halves
         Whether the gain is the weaker of two halves of the blocks (route 2's test); else
         on all blocks (too few for halves).
+    rule_floor_px
+        The native pitch at or below which the diagnosis withdraws any resampling by rule
+        (under JPEG, Q / 2: :func:`geosim.diagnose.stage_withdraw.jpeg_resampling_beyond_optics`);
+        ``limit`` is at least this. None: no such rule applies.
     """
 
     limit: float | None
@@ -124,6 +128,7 @@ class ResamplingLimit:
     needed_gain: float
     curve: tuple[tuple[float, float], ...]
     halves: bool = True
+    rule_floor_px: float | None = None
 
     def absorbs(self, value: float) -> bool:
         """Whether a resampling from native pitch ``value`` is not testable."""
@@ -132,6 +137,9 @@ class ResamplingLimit:
     def to_json(self) -> dict[str, Any]:
         why = ("the aliasing it would add does not bring the scene's power spectrum clearly "
                "closer (the predicted held-out gain is below what a claim needs)")
+        if self.limit is not None and self.limit == self.rule_floor_px:
+            why = ("under JPEG the optics at this Q pass nothing such a native grid aliases, "
+                   "and the diagnosis withdraws it as not identifiable")
         if self.limit is None:
             note = (f"At Q {self.q:.2f} no resampling with a native pitch up to "
                     f"{PITCHES[-1]:.2f} px is testable: {why}")
@@ -142,13 +150,15 @@ class ResamplingLimit:
         return {"param": "native_pitch_px", "limit": self.limit, "absorbed_side": "below",
                 "q": self.q, "basis": "measured_spectrum", "needed_spectral_gain":
                 self.needed_gain, "predicted_spectral_gain": [list(c) for c in self.curve],
-                "kernels_cubic_a": list(KERNELS), "on_halves": self.halves, "note": note}
+                "kernels_cubic_a": list(KERNELS), "on_halves": self.halves,
+                "rule_floor_px": self.rule_floor_px, "note": note}
 
 
 def resampling_limit(render: Callable[[dict[str, float] | None], list[np.ndarray]],
                      real_grey: np.ndarray, origin_sets: list[list[tuple[int, int]]], *,
                      block_px: int, q: float, need: float,
-                     margin: float = RESAMPLING_MARGIN) -> ResamplingLimit:
+                     margin: float = RESAMPLING_MARGIN,
+                     rule_floor_px: float | None = None) -> ResamplingLimit:
     """The resampling detection limit of a scene.
 
     Parameters
@@ -170,6 +180,9 @@ def resampling_limit(render: Callable[[dict[str, float] | None], list[np.ndarray
         The held-out gain a claim needs on these sets (before the margin).
     margin
         Factor on ``need`` (:data:`RESAMPLING_MARGIN`).
+    rule_floor_px
+        Native pitch at or below which a rule of the diagnosis withdraws any resampling
+        (the stated limit is at least this; None: none).
     """
     def ratios(imgs: list[np.ndarray]) -> list[np.ndarray]:
         return [log_power_ratio(imgs, real_grey, block_px=block_px, origins=o)
@@ -184,5 +197,8 @@ def resampling_limit(render: Callable[[dict[str, float] | None], list[np.ndarray
                                                          "cubic_a": a})), strict=True))
         curve.append((float(p), float(gain)))
     needed = float(margin * need)
-    return ResamplingLimit(limit_from_curve(tuple(curve), needed), float(q), needed,
-                           tuple(curve), halves=len(origin_sets) > 1)
+    limit = limit_from_curve(tuple(curve), needed)
+    if limit is not None and rule_floor_px is not None:
+        limit = max(limit, float(rule_floor_px))
+    return ResamplingLimit(limit, float(q), needed, tuple(curve), halves=len(origin_sets) > 1,
+                           rule_floor_px=rule_floor_px)

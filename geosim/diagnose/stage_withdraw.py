@@ -21,7 +21,7 @@ from geosim.diagnose.stage_noise import realisations
 
 __all__ = ["refit_without", "blur_at_q_floor", "jpeg_resampling_beyond_optics",
            "jpeg_delivered_isotropic", "never_worse", "JPEG_ISOTROPIC_SPECTRAL_GAIN",
-           "Q_FLOOR_REL"]
+           "Q_FLOOR_REL", "native_nyquist_floor_px", "optics_pass_native_nyquist"]
 
 #: under JPEG an isotropic blur must bring the delivered refined spectrum (JPEG last, as
 #: the camera encodes) this much closer than the model without it (fraction)
@@ -67,7 +67,13 @@ def optics_pass_native_nyquist(q: float, native_pitch_px: float) -> bool:
     content reach the band where the native sampling aliases and the cubic interpolation
     rolls off, i.e. where resampling changes the coherent transfer in a way Q cannot.
     """
-    return q < 2.0 * native_pitch_px
+    return native_pitch_px > native_nyquist_floor_px(q)
+
+
+def native_nyquist_floor_px(q: float) -> float:
+    """The native pitch (product pixels) whose Nyquist the optics' cut-off 1/Q reaches: Q / 2
+    (coarser native grids are aliased by what the optics pass)."""
+    return q / 2.0
 
 
 def jpeg_resampling_beyond_optics(inp: Inputs, model: ForwardModel, sel: BlurSelection,
