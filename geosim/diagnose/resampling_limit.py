@@ -44,8 +44,8 @@ __all__ = ["RESAMPLING_MARGIN", "PITCHES", "KERNELS", "ResamplingLimit",
 #: pitch to be stated testable. Set on the independent benchmark's development half (the
 #: 74 rows of seeds 1000-1351 with a true resampling; docs/diagnosis.md, round 12) as the
 #: smallest of 1, 1.5, 2, 3, 4, 6, 8 at which >= 90 % of those stated testable were found
-#: (1: 52/60, 2: 50/57, 3: 47/51, 4: 37/38). The prediction stacks the resampling on the
-#: scene as it is, so where one is there unclaimed it is optimistic
+#: (with the JPEG floor: 1: 52/59, 2: 50/56, 3: 47/50, 4: 37/38). The prediction stacks the
+#: resampling on the scene as it is, so where one is there unclaimed it is optimistic
 RESAMPLING_MARGIN = 3.0
 #: native pitches (0.5 m product pixels) at which the predicted gain is evaluated: the
 #: range route 2 scans (1.15-2.0 px)
