@@ -181,7 +181,8 @@ def test_combined_over_flights():
     # two flights test resampling from 1.6 px; the one that tests none counts last
     assert r["limit"] == 1.6 and r["limit_by_flight"] == [1.3, 1.6, None]
     assert r["basis"] == "majority_of_flights" and r["q"] == 2.5
-    assert "finer than 1.60 px is testable in fewer than 2 of 3 flights" in r["note"]
+    assert "(resampling) from a native grid finer than 1.60 px is testable in fewer than 2 of 3 " \
+        "flights" in r["note"]
     assert combine_limits(flights, need=3, q=2.5)["resampling"]["limit"] is None
     # a flight that states no resampling limit (an older diagnosis.json) counts as none
     older = combine_limits([res(1.3), {}], need=1, q=2.5)["resampling"]

@@ -40,6 +40,7 @@ from scipy.optimize import minimize_scalar
 
 from geosim.diagnose.effects import ParamSpec, get_effect
 from geosim.diagnose.fit import HANN_CORRELATION, SpectralData, model_transfer
+from geosim.diagnose.resampling_limit import ABSORBED_WORDS as RESAMPLING_WORDS
 from geosim.diagnose.select import MIN_CV_GAIN, MIN_DELTA_BIC
 from geosim.physics import otf
 
@@ -444,8 +445,8 @@ def combine_limits(per_flight: list[dict[str, dict[str, Any]]], need: int, q: fl
     if first is not None:
         stated = [r["limit"] if r else None for r in resampling]
         limit = _majority(stated, need, most_sensitive_low=True)
-        what = (f"a resampling from a native grid finer than {limit:.2f} px"
-                if limit is not None else "any resampling")
+        what = (RESAMPLING_WORDS.format(v=limit) if limit is not None
+                else "any resampling (resampling)")
         out["resampling"] = _combined(first, stated, limit, need, q, what,
                                       "its aliasing would not be resolved")
     return out

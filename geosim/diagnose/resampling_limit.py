@@ -37,7 +37,7 @@ import numpy as np
 from geosim.diagnose.spectra import log_power_ratio
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
-__all__ = ["RESAMPLING_MARGIN", "PITCHES", "KERNELS", "ResamplingLimit",
+__all__ = ["RESAMPLING_MARGIN", "PITCHES", "KERNELS", "ABSORBED_WORDS", "ResamplingLimit",
            "predicted_spectral_gain", "limit_from_curve", "resampling_limit"]
 
 #: how far the predicted held-out gain must exceed the gain a claim needs for a native
@@ -47,6 +47,8 @@ __all__ = ["RESAMPLING_MARGIN", "PITCHES", "KERNELS", "ResamplingLimit",
 #: (with the JPEG floor: 1: 52/59, 2: 50/56, 3: 47/50, 4: 37/38). The prediction stacks the
 #: resampling on the scene as it is, so where one is there unclaimed it is optimistic
 RESAMPLING_MARGIN = 3.0
+#: the untestable side of a limit in words, ``{v}`` the limit
+ABSORBED_WORDS = "a resampling (resampling) from a native grid finer than {v:.2f} px"
 #: native pitches (0.5 m product pixels) at which the predicted gain is evaluated: the
 #: range route 2 scans (1.15-2.0 px)
 PITCHES = (1.15, 1.25, 1.35, 1.45, 1.55, 1.7, 1.85, 2.0)
@@ -144,9 +146,8 @@ class ResamplingLimit:
             note = (f"At Q {self.q:.2f} no resampling with a native pitch up to "
                     f"{PITCHES[-1]:.2f} px is testable: {why}")
         else:
-            note = (f"At Q {self.q:.2f}, a resampling (resampling) from a native grid finer "
-                    f"than {self.limit:.2f} px is not testable: {why} (not claimed, not "
-                    "excluded)")
+            note = (f"At Q {self.q:.2f}, {ABSORBED_WORDS.format(v=self.limit)} is not "
+                    f"testable: {why} (not claimed, not excluded)")
         return {"param": "native_pitch_px", "limit": self.limit, "absorbed_side": "below",
                 "q": self.q, "basis": "measured_spectrum", "needed_spectral_gain":
                 self.needed_gain, "predicted_spectral_gain": [list(c) for c in self.curve],

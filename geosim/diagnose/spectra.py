@@ -22,7 +22,7 @@ import numpy as np
 __all__ = [
     "CrossSpectrum", "block_origins", "screen_blocks", "cross_spectrum", "frequency_angle_deg",
     "polar_bin_mean", "power_spectrum", "radial_profile", "directional_profiles",
-    "spectral_error", "log_power_ratio", "rms_finite", "hann2d",
+    "spectral_error", "log_power_ratio", "hann2d",
 ]
 
 
@@ -280,12 +280,6 @@ def spectral_error(sim: np.ndarray | list[np.ndarray], real: np.ndarray, *,
     """
     ratio = log_power_ratio(sim, real, valid=valid, block_px=block_px, n_radial=n_radial,
                             n_angular=n_angular, origins=origins)
-    return rms_finite(ratio)
-
-
-def rms_finite(ratio: np.ndarray) -> float:
-    """RMS of the finite entries of ``ratio`` (a :func:`log_power_ratio`): the spectral
-    error."""
     ratio = ratio[np.isfinite(ratio)]
     return float(np.sqrt(np.mean(ratio**2)))
 
