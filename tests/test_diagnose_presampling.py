@@ -21,7 +21,12 @@ import diagnose_generator as gen  # noqa: E402
 from geosim.diagnose.effects import get_effect  # noqa: E402
 from geosim.diagnose.exact import ExactBlocks, ExactSimulations, exact_fit  # noqa: E402
 from geosim.diagnose.fit import build_spectral_data, fit_transfer  # noqa: E402
-from geosim.diagnose.model import ForwardModel, Registration, blur_apply  # noqa: E402
+from geosim.diagnose.model import (  # noqa: E402
+    ForwardModel,
+    NoiseEstimate,
+    Registration,
+    blur_apply,
+)
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.diagnose.spectra import block_origins  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
@@ -168,3 +173,34 @@ def test_native_phase_shift_flips_the_alias_not_the_passband():
     s0, s1, k = spectra(77)                         # 0.60 cycles/px: aliased to ≈ 0.064
     assert abs(k / (n_sat - 32) - 0.064) < 0.015, k
     assert abs(s1[k] + s0[k]) < 0.1 * abs(s0[k]), (s0[k], s1[k])   # sign flipped
+
+
+def test_native_sampling_reused_across_kernels_gives_the_fresh_render():
+    """QSimulator.native keeps a pitch's native sampling for the next call (the kernel
+    scans render each pitch with both kernels): every render equals that of a simulator
+    that never rendered before, whatever came before it."""
+    img = _ground(5, 48)
+    sim = QSimulator(img, phi=gen.PHI, q_min=0.5)
+    calls = [(1.4, -0.75), (1.4, -0.5), (1.45, -0.5), (1.6, -0.75), (1.4, -0.75), (1.6, -0.5)]
+    for q in (1.2, 2.0):
+        for pitch, a in calls:
+            got = sim.native(q, pitch, cubic_a=a)
+            fresh = QSimulator(img, phi=gen.PHI, q_min=0.5).native(q, pitch, cubic_a=a)
+            assert np.array_equal(got, fresh), (q, pitch, a)
+
+
+def test_noise_realisations_render_the_model_once_with_the_same_arrays():
+    """ForwardModel.delivered_realisations gives the arrays separate ``delivered`` calls
+    give (the deterministic part rendered once, not modified by the noise)."""
+    sim = QSimulator(_ground(6, 48), phi=gen.PHI, q_min=0.5)
+    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
+                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+    noise = NoiseEstimate(gain_dn=0.2, read_var_dn2=4.0, gain_sigma=0.0, read_sigma=0.0,
+                          white_var_dn2=20.0, whiteness=1.0, claimed=True, quantization_dn2=0.0)
+    model = ForwardModel(q=1.5, blur={"resampling": {"native_pitch_px": 1.4}},
+                         registration=reg, noise=noise)
+    rngs = [np.random.default_rng(7 + k) for k in range(3)]
+    many = model.delivered_realisations(sim, rngs, quantized=True)
+    one = [model.delivered(sim, np.random.default_rng(7 + k), quantized=True) for k in range(3)]
+    assert all(np.array_equal(a, b) for a, b in zip(many, one, strict=True))
+    assert not np.array_equal(many[0], many[1])      # distinct realisations

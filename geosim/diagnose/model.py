@@ -270,7 +270,19 @@ class ForwardModel:
                   *, quantized: bool) -> np.ndarray:
         """As the product is delivered: with a noise realisation, whole DN if quantized,
         then compressed (JPEG encodes the noisy, quantized product)."""
+        return self._deliver(self._before_compression(simulate), rng, quantized=quantized)
+
+    def delivered_realisations(self, simulate: Callable[[float], np.ndarray],
+                               rngs: list[np.random.Generator], *, quantized: bool
+                               ) -> list[np.ndarray]:
+        """:meth:`delivered` with each of ``rngs`` (noise realisations of one model), the
+        deterministic part rendered once (the same arrays as separate calls give)."""
         m = self._before_compression(simulate)
+        return [self._deliver(m, rng, quantized=quantized) for rng in rngs]
+
+    def _deliver(self, m: np.ndarray, rng: np.random.Generator, *, quantized: bool
+                 ) -> np.ndarray:
+        """The deterministic image ``m`` (before compression) as delivered (not modified)."""
         if self.noise is not None and self.noise.claimed:
             m = get_effect("sensor_noise").apply(m, rng=rng, gain_dn=self.noise.gain_dn,
                                                  read_var_dn2=self.noise.read_var_dn2)

@@ -57,6 +57,7 @@ class QSimulator:
         self._fast = SpectralDegrader(self.uav, phi=self.phi, q_min=self.q_min, valid=valid)
         self._variants: dict[object, QSimulator] = {}
         self._native_fine: tuple[object, np.ndarray] | None = None
+        self._native_low: tuple[object, list[np.ndarray]] | None = None
         if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
             self.uav = None
 
@@ -144,13 +145,18 @@ class QSimulator:
                                        transfer)
             # one Airy-blurred fine image kept (the pitch scans reuse it)
             self._native_fine = (ck, blur(img, q=q, phi=self.phi).astype(np.float32))
+            self._native_low = None
         fine = self._native_fine[1]
         rows, cols = fine.shape[-2] // self.phi, fine.shape[-1] // self.phi
         n_rows = max(2, int(round(rows / native_pitch_px)))
         n_cols = max(2, int(round(cols / native_pitch_px)))
+        # the native sampling kept for the next call: the kernel scans render each pitch
+        # with both cubic kernels, one after the other
+        if self._native_low is None or self._native_low[0] != (ck, n_rows, n_cols):
+            lows = [cv2.resize(np.ascontiguousarray(band[:rows * self.phi, :cols * self.phi]),
+                               (n_cols, n_rows), interpolation=cv2.INTER_AREA) for band in fine]
+            self._native_low = ((ck, n_rows, n_cols), lows)
         out = np.empty((fine.shape[0], rows, cols))
-        for i, band in enumerate(fine):
-            src = np.ascontiguousarray(band[:rows * self.phi, :cols * self.phi])
-            low = cv2.resize(src, (n_cols, n_rows), interpolation=cv2.INTER_AREA)
+        for i, low in enumerate(self._native_low[1]):
             out[i] = cubic_resize(low, (rows, cols), cubic_a)
         return out

@@ -111,7 +111,12 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     def at(a: float, p: float) -> dict[str, float]:
         return {"native_pitch_px": p, "cubic_a": a}
 
-    imgs = [delivered(model.without(blur={**model.blur, name: at(a, p)})) for a, p in grid]
+    # rendered pitch by pitch: the simulator keeps a pitch's native sampling for the next
+    # kernel (same images as in the scan's order)
+    rendered = {(float(a), float(p)): delivered(model.without(blur={**model.blur,
+                                                                    name: at(float(a), float(p))}))
+                for p in pitches for a in (OPENCV_A, KEYS_A)}
+    imgs = [rendered[g] for g in grid]
     none = delivered(model)
     se_h = np.array([[se_on(im, h) for h in halves] for im in imgs])   # (kernel·pitch, half)
     se0 = [se_on(none, h) for h in halves]

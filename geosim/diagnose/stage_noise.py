@@ -49,8 +49,9 @@ def realisations(inp: Inputs, m: ForwardModel, rng_seed: int) -> list[np.ndarray
     noise realisations of it (the first is the one delivered), whose mean Welch power is
     the model's expected spectrum."""
     n = NOISE_REALISATIONS if m.noise is not None and m.noise.claimed else 1
-    return [m.delivered(inp.simulate, np.random.default_rng(rng_seed + k),
-                        quantized=inp.quantized) for k in range(n)]
+    return m.delivered_realisations(
+        inp.simulate, [np.random.default_rng(rng_seed + k) for k in range(n)],
+        quantized=inp.quantized)
 
 
 def realisation_scatter(img: list[np.ndarray], se_of: Callable[[np.ndarray], float]) -> float:
