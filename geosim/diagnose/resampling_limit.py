@@ -19,7 +19,8 @@ held-out gain of the spectral error is 1 − RMS(e) / RMS(e − d_p)
 (:func:`predicted_spectral_gain`), the weaker of the two halves, and the weaker of the two
 kernels processors use; the pitch is testable where that gain reaches the gain a claim
 needs (1 − :data:`~geosim.diagnose.stage_aliasing.ALIASING_SPECTRAL_GAIN_SPLIT`) times
-:data:`RESAMPLING_MARGIN`.
+:data:`RESAMPLING_MARGIN`. Where a rule of the diagnosis withdraws any resampling below
+some pitch (under JPEG, Q / 2), the limit is at least that pitch.
 
 The pure part (:func:`predicted_spectral_gain`, :func:`limit_from_curve`,
 :class:`ResamplingLimit`) works on arrays; :func:`resampling_limit` takes the renders as a
