@@ -15,8 +15,8 @@ filtered by the effects on the whole image, cut into the same windowed blocks an
 cross-spectrally compared with the sharpest simulation, so window leakage, edges and
 aliasing enter model and measurement alike. One evaluation costs one inverse FFT of the
 scene and one FFT per block (≈ 1 ms on a 128 px scene), so it is used where the shape
-decides: to choose between the members of the anisotropic family (:func:`duel`) and
-to refit the chosen blur's parameters.
+decides: to choose between the members of a blur family (:func:`duel`) and to refit the chosen
+blur's parameters.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from geosim.diagnose.spectra import hann2d
 from geosim.physics.otf import frequency_grid
 
 __all__ = ["ExactSimulations", "ExactBlocks", "exact_fit", "exact_cv_chi2", "DuelResult",
-           "duel"]
+           "duel", "in_sample_best"]
 
 
 class ExactSimulations:
@@ -191,11 +191,12 @@ class DuelResult:
 def duel(sims: ExactSimulations, full: ExactBlocks,
          folds: Sequence[tuple[ExactBlocks, ExactBlocks]], starts: dict[str, TransferFit],
          without: TransferFit) -> DuelResult:
-    """Choose between same-family effects by the exact model's held-out prediction.
+    """Fit the same-family effects with the exact model and score their held-out prediction.
 
     ``starts``: for each member, the fast fit of the chosen effects with that member;
     ``without``: the fast fit of the chosen effects without the family (the reference
-    of the gains).
+    of the gains). ``best`` is the member whose fit on all blocks has the lowest BIC
+    (:func:`in_sample_best`); the held-out gains are the evidence the claim rule reads.
     """
     fits = {n: exact_fit(sims, full, st) for n, st in starts.items()}
     if folds:
@@ -205,5 +206,17 @@ def duel(sims: ExactSimulations, full: ExactBlocks,
     else:
         cv = {n: f.chi2 for n, f in fits.items()}
         gains = {n: float("nan") for n in fits}
-    best = min(cv, key=cv.__getitem__)
-    return DuelResult(fits=fits, cv=cv, gains=gains, best=best)
+    return DuelResult(fits=fits, cv=cv, gains=gains, best=in_sample_best(fits, list(fits)))
+
+
+def in_sample_best(fits: dict[str, TransferFit], names: Sequence[str]) -> str:
+    """The member of ``names`` whose exact fit on all blocks has the lowest BIC.
+
+    Members of one family carry the same number of parameters, so this is the lowest χ²:
+    the comparison of two models of equal size needs no held-out data, and the held-out
+    χ² adds the scatter of four refits on three quarters of the blocks each. On the
+    development duels of the independent benchmark (seeds 1000-1415, 76 anisotropic
+    duels) the held-out χ² named the true member in 56, the χ² on all blocks in 62; the
+    isotropic duels were named alike (33 of 37 either way).
+    """
+    return min(names, key=lambda n: fits[n].bic())

@@ -16,9 +16,11 @@ the shape of their roll-off, that bias decides the name:
 
 :func:`exact_duel` refits every member of the family (jointly with Q, the gain and the
 other chosen blurs) with :class:`~geosim.diagnose.exact.ExactSimulations` and keeps the
-one with the lowest held-out χ² of that model; members within
-:data:`~geosim.diagnose.select.AMBIGUITY_CV` of its held-out gain are listed as
-alternatives. The chosen blur's parameters, Q and gain become the exact model's.
+one whose fit on all blocks leaves the lowest χ² (members have equal numbers of
+parameters; :func:`~geosim.diagnose.exact.in_sample_best`); members whose held-out gain
+is within :data:`~geosim.diagnose.select.AMBIGUITY_CV` of the chosen one's (or above it)
+are listed as alternatives. The chosen blur's parameters, Q and gain become the exact
+model's.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from geosim.diagnose.exact import ExactBlocks, ExactSimulations, duel, exact_fit
+from geosim.diagnose.exact import ExactBlocks, ExactSimulations, duel, exact_fit, in_sample_best
 from geosim.diagnose.fit import SpectralData, fit_transfer
 from geosim.diagnose.select import (
     AMBIGUITY_CV,
@@ -57,7 +59,7 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
                full: SpectralData, origins: list[tuple[int, int]],
                fold_groups: Sequence[Sequence[tuple[int, int]]], block_px: int,
                sel: BlurSelection, family: str, q_base: float) -> BlurSelection:
-    """Decide the claimed member of ``family`` by the exact model's held-out χ².
+    """Decide the claimed member of ``family`` by the exact model's χ² on all blocks.
 
     Parameters
     ----------
@@ -108,7 +110,7 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
           and plausible(m, res.fits[m].effects[m])]
     if not ok:
         return sel
-    best = min(ok, key=res.cv.__getitem__)
+    best = in_sample_best(res.fits, ok)
     fit = res.fits[best]
     gb = res.gains[best]
     alts = [Alternative(m, float(res.gains[m]), dict(res.fits[m].effects[m])) for m in ok

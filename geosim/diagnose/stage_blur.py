@@ -143,7 +143,8 @@ def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
     The fast fit sees every blur through the Welch window's leakage, which smooths a sinc
     towards a Gaussian (``motion_smear`` / ``off_nadir_anisotropy``) and the detector's
     box towards the atmosphere's roll-off (``detector_integration`` /
-    ``atmospheric_blur``); within each family the exact model's held-out χ² decides. The
+    ``atmospheric_blur``); within each family the exact model's χ² on all blocks decides
+    (members have equal numbers of parameters), the held-out χ² gives the evidence. The
     chosen effects, Q and gain are then the exact model's joint fit (on all blocks)."""
     groups = quadrant_folds(setup.origins, setup.block_px, inp.valid.shape)
     for family in EXACT_FAMILIES:
