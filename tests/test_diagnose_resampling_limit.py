@@ -160,6 +160,10 @@ def test_json_note_and_absorbs():
     assert none["limit"] is None and "no resampling with a native pitch up to 2.00 px" in \
         none["note"]
     assert ResamplingLimit(None, 3.1, 0.1, ()).absorbs(2.5)
+    # every scanned pitch testable: the note says so, and that finer grids are not scanned
+    bottom = ResamplingLimit(PITCHES[0], 1.4, 0.1, ()).to_json()["note"]
+    assert "native grid of 1.15-2.00 px is testable" in bottom
+    assert "finer than 1.15 px is not tested (below the range the diagnosis scans" in bottom
     # the report lists it unless resampling was claimed
     text = "\n".join(limits_markdown({"resampling": doc}))
     assert "finer than 1.42 px" in text and "Such an effect is not claimed" in text
@@ -184,6 +188,9 @@ def test_combined_over_flights():
     assert "(resampling) from a native grid finer than 1.60 px is testable in fewer than 2 of 3 " \
         "flights" in r["note"]
     assert combine_limits(flights, need=3, q=2.5)["resampling"]["limit"] is None
+    bottom = combine_limits([res(PITCHES[0])] * 2, need=2, q=2.5)["resampling"]["note"]
+    assert "finer than 1.15 px is testable in fewer than 2 of 2" in bottom
+    assert "below the range the diagnosis scans" in bottom
     # a flight that states no resampling limit (an older diagnosis.json) counts as none
     older = combine_limits([res(1.3), {}], need=1, q=2.5)["resampling"]
     assert older["limit"] == 1.3 and older["limit_by_flight"] == [1.3, None]

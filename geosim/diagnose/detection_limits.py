@@ -41,6 +41,7 @@ from scipy.optimize import minimize_scalar
 from geosim.diagnose.effects import ParamSpec, get_effect
 from geosim.diagnose.fit import HANN_CORRELATION, SpectralData, model_transfer
 from geosim.diagnose.resampling_limit import ABSORBED_WORDS as RESAMPLING_WORDS
+from geosim.diagnose.resampling_limit import PITCHES as RESAMPLING_PITCHES
 from geosim.diagnose.select import MIN_CV_GAIN, MIN_DELTA_BIC
 from geosim.physics import otf
 
@@ -448,7 +449,9 @@ def combine_limits(per_flight: list[dict[str, dict[str, Any]]], need: int, q: fl
         what = (RESAMPLING_WORDS.format(v=limit) if limit is not None
                 else "any resampling (resampling)")
         out["resampling"] = _combined(first, stated, limit, need, q, what,
-                                      "its aliasing would not be resolved")
+                                      "below the range the diagnosis scans"
+                                      if limit == RESAMPLING_PITCHES[0]
+                                      else "its aliasing would not be resolved")
     return out
 
 

@@ -146,6 +146,12 @@ class ResamplingLimit:
         if self.limit is None:
             note = (f"At Q {self.q:.2f} no resampling with a native pitch up to "
                     f"{PITCHES[-1]:.2f} px is testable: {why}")
+        elif self.limit == PITCHES[0] and self.limit != self.rule_floor_px:
+            # every scanned pitch is testable: what is left untested is below the scan
+            note = (f"At Q {self.q:.2f} a resampling from a native grid of "
+                    f"{PITCHES[0]:.2f}-{PITCHES[-1]:.2f} px is testable; "
+                    f"{ABSORBED_WORDS.format(v=self.limit)} is not tested (below the range "
+                    "the diagnosis scans; not claimed, not excluded)")
         else:
             note = (f"At Q {self.q:.2f}, {ABSORBED_WORDS.format(v=self.limit)} is not "
                     f"testable: {why} (not claimed, not excluded)")
