@@ -61,18 +61,21 @@ def test_merge_takes_rows_by_case_recomputes_splits_and_states_limits(tmp_path):
 
     lim = {"detector_integration": {"param": "pitch_px", "limit": 9.0,
                                     "absorbed_side": "below", "q": 3.0}}
-    a = _results(tmp_path / "a.json", [_row("c00", 1000), _row("c390", 1390)])
+    # a seed of the current validation half (rows keep their seed when a new half is drawn)
+    v_seed = gen.VALIDATION_FIRST_SEED + 6
+    vc = f"c{v_seed - 1000}"
+    a = _results(tmp_path / "a.json", [_row("c00", 1000), _row(vc, v_seed)])
     b = _results(tmp_path / "b.json", [_row("c00", 1000, claimed={"haze": {}},
                                             detection_limits=lim)])
     out = tmp_path / "merged.json"
     bench.merge([a, b], str(out))
     doc = json.loads(out.read_text())
     rows = {r["case"]: r for r in doc["cases"]}
-    assert [r["case"] for r in doc["cases"]] == ["c00", "c390"]
+    assert [r["case"] for r in doc["cases"]] == ["c00", vc]
     assert rows["c00"]["claimed"] == {"haze": {}} and rows["c00"]["detection_limits"] == lim
-    assert rows["c00"]["split"] == "development" and rows["c390"]["split"] == "validation"
-    assert rows["c390"]["detection_limits"] == detection_limits_json(3.0)
-    assert rows["c390"]["detection_limits_restated"] is True
+    assert rows["c00"]["split"] == "development" and rows[vc]["split"] == "validation"
+    assert rows[vc]["detection_limits"] == detection_limits_json(3.0)
+    assert rows[vc]["detection_limits_restated"] is True
     assert doc["halves"]["development"]["n_cases"] == 1
     assert doc["seconds_total"] == pytest.approx(3.0, abs=0.5)
     big = _results(tmp_path / "big.json", [_row("c01", 1001)], sat_px=384)
