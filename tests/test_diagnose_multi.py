@@ -152,3 +152,23 @@ def test_cli_two_uav_inputs(ground, tmp_path):
     for f in doc["files"].values():
         assert (tmp_path / "out" / f).is_file()
     assert (tmp_path / "out" / "b" / "sim_refined.tif").is_file()
+
+
+def test_combined_alternative_carries_the_median_delta_bic():
+    """Each flight's exact duel states by how much its claim beat the alternative on all
+    blocks (ΔBIC); the combined verdict carries their median."""
+    def smear(dbic_alt):
+        e = _eff("motion_smear", SMEAR, alts=["off_nadir_anisotropy"])
+        e["alternatives"] = [{"name": "off_nadir_anisotropy", "heldout_gain": 0.2,
+                              "params": {"sigma_px": 0.8, "azimuth_deg": 45.0},
+                              "delta_bic": dbic_alt}]
+        return e
+
+    docs = {"A": _doc([smear(1.0)]), "B": _doc([smear(3.0)]), "C": _doc([smear(8.0)])}
+    out = combine_flights(docs, reference="A")
+    (m,) = [e for e in out["effects"] if e["name"] == "motion_smear"]
+    (alt,) = m["alternatives"]
+    assert alt["name"] == "off_nadir_anisotropy" and alt["delta_bic"] == pytest.approx(3.0)
+    assert alt["heldout_gain"] == pytest.approx(0.2)
+    (amb,) = out["ambiguities"]
+    assert "median ΔBIC 3.0, evidence positive" in amb["note"]

@@ -37,7 +37,7 @@ import numpy as np
 
 from geosim.diagnose.detection_limits import combine_limits
 from geosim.diagnose.effects import get_effect
-from geosim.diagnose.select import BLUR_FAMILY
+from geosim.diagnose.select import BLUR_FAMILY, bic_evidence
 
 __all__ = ["combine_flights", "combine_values", "PER_FLIGHT_EFFECTS"]
 
@@ -53,6 +53,13 @@ def _median(values: Sequence[float]) -> float:
 def _finite_median(values: Sequence[Any]) -> float | None:
     m = _median(values)
     return m if np.isfinite(m) else None
+
+
+def _listed(claims: Mapping[str, Mapping[str, Any]], claimed: str, alt: str, key: str
+            ) -> list[Any]:
+    """``key`` of ``alt`` in every flight that listed it as ``claimed``'s alternative."""
+    return [x.get(key) for by_name in claims.values()
+            for x in by_name.get(claimed, {}).get("alternatives", []) if x.get("name") == alt]
 
 
 def _spread(values: Sequence[float]) -> float:
@@ -219,17 +226,22 @@ def combine_flights(docs: Mapping[str, Mapping[str, Any]], *, reference: str
                 entry["indistinguishable_from"] = alts
                 entry["alternatives"] = [
                     {"name": a, "votes": f"{len(exact.get(a, []))}/{n}",
-                     "heldout_gain": _finite_median([x.get("heldout_gain") for f in ids
-                                              for x in claims[f].get(g, {}).get(
-                                                  "alternatives", []) if x.get("name") == a]
-                                             + [claims[f][a].get("heldout_gain")
-                                                for f in exact.get(a, [])])}
+                     "heldout_gain": _finite_median(
+                         _listed(claims, g, a, "heldout_gain")
+                         + [claims[f][a].get("heldout_gain") for f in exact.get(a, [])]),
+                     # median over the flights whose exact duel named g over a
+                     "delta_bic": _finite_median(_listed(claims, g, a, "delta_bic"))}
                     for a in alts]
+                named = [x["delta_bic"] for x in entry["alternatives"]
+                         if x["delta_bic"] is not None]
                 ambiguities.append({"claimed": g, "alternatives": alts, "note": (
                     f"{g} and {', '.join(alts)} explain the measured transfer function about "
                     f"equally well in the flights that claimed them (votes: "
                     + ", ".join(f"{a} {len(exact.get(a, []))}/{n}" for a in [g, *alts])
-                    + "); the data cannot tell them apart")})
+                    + ("); the data cannot tell them apart" if not named else
+                       f"); where a flight's fit on all blocks named {g}, it was better by a "
+                       f"median ΔBIC {min(named):.1f}, evidence {bic_evidence(min(named))} "
+                       "(Kass & Raftery)"))})
             effects.append(entry)
     # per-flight effects: the reference flight's values head the list
     per_flight: dict[str, dict[str, Any]] = {}

@@ -113,10 +113,13 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
     best = in_sample_best(res.fits, ok)
     fit = res.fits[best]
     gb = res.gains[best]
-    alts = [Alternative(m, float(res.gains[m]), dict(res.fits[m].effects[m])) for m in ok
+    n_values = 2 * full.t_real.size
+    # the variance scale of the claimed fit, so that the members' BICs compare as ΔBIC does
+    scale = max(1.0, fit.chi2 / max(n_values - fit.n_params, 1))
+    alts = [Alternative(m, float(res.gains[m]), dict(res.fits[m].effects[m]),
+                        float(res.fits[m].bic(scale) - fit.bic(scale))) for m in ok
             if m != best and res.gains[m] >= MIN_CV_GAIN
             and gb - res.gains[m] <= AMBIGUITY_CV * gb]
-    n_values = 2 * full.t_real.size
     dbic = delta_bic(exact_fit(sims, blocks, without), fit, n_values)
     sel.steps[k] = AcceptedEffect(best, dbic, float(gb), alts, fit)
     for j in range(k + 1, len(sel.steps)):

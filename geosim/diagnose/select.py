@@ -39,6 +39,7 @@ from geosim.diagnose.fit import (
 from geosim.diagnose.model import RadiometryChoice
 
 __all__ = ["BlurSelection", "Alternative", "AcceptedEffect", "select_blur", "delta_bic",
+           "bic_evidence",
            "select_radiometry", "cv_chi2", "at_bound", "clearly_present", "plausible",
            "MIN_DELTA_BIC", "MIN_CV_GAIN", "AMBIGUITY_CV", "EFFECT_SIZE", "EFFECT_MAX",
            "BLUR_FAMILY"]
@@ -102,11 +103,25 @@ def delta_bic(without: TransferFit, with_: TransferFit, n_values: int) -> float:
 
 @dataclass
 class Alternative:
-    """A same-family effect that predicts the held-out blocks about as well."""
+    """A same-family effect that predicts the held-out blocks about as well.
+
+    ``delta_bic``: its exact fit's BIC on all blocks minus the claimed member's (≥ 0; the
+    member with the lower one is claimed), where the exact duel named the claim; else None.
+    """
 
     name: str
     cv_gain: float
     params: dict[str, float]
+    delta_bic: float | None = None
+
+
+def bic_evidence(delta_bic: float) -> str:
+    """How strongly a BIC difference favours one model (Kass & Raftery, 1995, §3.2)."""
+    if delta_bic < 2.0:
+        return "not worth more than a bare mention"
+    if delta_bic < 6.0:
+        return "positive"
+    return "strong" if delta_bic < 10.0 else "very strong"
 
 
 @dataclass

@@ -58,7 +58,8 @@ def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         q_sigma = float(st.fit.sigmas.get("q", 0.0))  # type: ignore[arg-type]
         if q_sigma > 0:
             unc["q"] = q_sigma
-        alts = [{"name": a.name, "heldout_gain": a.cv_gain, "params": a.params}
+        alts = [{"name": a.name, "heldout_gain": a.cv_gain, "params": a.params,
+                 **({} if a.delta_bic is None else {"delta_bic": a.delta_bic})}
                 for a in st.alternatives]
         out.append((Claim(st.name, dict(st.fit.effects[st.name]), unc, st.delta_bic,
                           st.heldout_gain, alts), cur))

@@ -13,7 +13,7 @@ from geosim.diagnose.context import EvalContext
 from geosim.diagnose.detection_limits import MeasuredTransfer, detection_limits_json
 from geosim.diagnose.fit import fit_transfer
 from geosim.diagnose.model import Claim, ForwardModel
-from geosim.diagnose.select import BlurSelection
+from geosim.diagnose.select import BlurSelection, bic_evidence
 from geosim.diagnose.spectra import cross_spectrum, radial_profile
 from geosim.diagnose.stage_aliasing import resampling_detection_limit
 from geosim.diagnose.stage_blur import SpectralSetup
@@ -33,8 +33,14 @@ def _ambiguity_note(claim: Claim) -> str:
     if all("heldout_gain" not in a for a in claim.alternatives):
         return (f"{claim.name} and {names} explain the pixels about equally well (BIC "
                 "within the claiming margin); the data cannot tell them apart")
+    named = [a["delta_bic"] for a in claim.alternatives if a.get("delta_bic") is not None]
+    if not named:
+        return (f"{claim.name} and {names} predict the held-out blocks about equally well "
+                "(same family); the data cannot tell them apart")
+    d = min(named)
     return (f"{claim.name} and {names} predict the held-out blocks about equally well "
-            "(same family); the data cannot tell them apart")
+            f"(same family); {claim.name} is named because its fit on all blocks is better "
+            f"by ΔBIC {d:.1f}, evidence {bic_evidence(d)} (Kass & Raftery)")
 
 
 def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
