@@ -81,13 +81,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--indices", required=True,
                     type=lambda s: [int(v) for v in s.split(",")],
-                    help="development case indices (0-159)")
+                    help="development case indices (`diagnose_independent.DEVELOPMENT`)")
     ap.add_argument("--baseline", default=str(di.HALVES_FILE),
                     help="a diagnose_independent result with se_base / se_refined per case")
     ap.add_argument("--out", default=None, help="JSON output (default: print only)")
     args = ap.parse_args()
     if set(args.indices) - set(di.DEVELOPMENT):
-        sys.exit("--indices: development cases only (0-159)")
+        sys.exit(f"--indices: development cases only (0-{max(di.DEVELOPMENT)}; not the "
+                 "validation half)")
     sources = gen.pick_sources(gen.list_sources(di.REAL, di.SAMPLES))
     prev: dict[str, Any] = {}
     if Path(args.baseline).is_file():
