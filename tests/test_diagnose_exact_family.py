@@ -8,7 +8,7 @@ from scipy import ndimage
 
 from geosim.diagnose.exact_family import exact_duel
 from geosim.diagnose.fit import build_spectral_data
-from geosim.diagnose.select import select_blur
+from geosim.diagnose.select import BLUR_FAMILY, select_blur
 
 
 def _airy_sims(scene: np.ndarray, q_grid: np.ndarray) -> list[np.ndarray]:
@@ -23,6 +23,26 @@ def _airy_sims(scene: np.ndarray, q_grid: np.ndarray) -> list[np.ndarray]:
         otf = (2 / np.pi) * (np.arccos(v) - v * np.sqrt(1 - v * v))
         out.append(np.real(np.fft.ifft2(spec * otf)))
     return out
+
+
+def _select_and_duel(real, sims, q_grid, family, q_start, block=32):
+    """Forward selection among ``family``'s members on 32 px Welch blocks of a square
+    scene with its four quadrants as folds, then the exact duel."""
+    n = real.shape[0]
+    origins = [(r, c) for r in range(0, n - block + 1, block)
+               for c in range(0, n - block + 1, block)]
+    groups = [[o for o in origins if (o[0] >= n / 2) == (i // 2 == 1)
+               and (o[1] >= n / 2) == (i % 2 == 1)] for i in range(4)]
+    full = build_spectral_data(sims, q_grid, real, origins=origins, block_px=block)
+    folds = []
+    for j, g in enumerate(groups):
+        train = [o for i, gg in enumerate(groups) if i != j for o in gg]
+        folds.append((build_spectral_data(sims, q_grid, real, origins=train, block_px=block),
+                      build_spectral_data(sims, q_grid, real, origins=g, block_px=block)))
+    members = tuple(m for m, fam in BLUR_FAMILY.items() if fam == family)
+    sel = select_blur(full, folds, candidates=members, q_starts=(q_start,))
+    assert sel.steps, f"no {family} blur selected at all"
+    return exact_duel(real, sims, q_grid, full, origins, groups, block, sel, family, q_start)
 
 
 @pytest.mark.parametrize("truth", ["detector_integration", "atmospheric_blur"])
@@ -47,21 +67,7 @@ def test_exact_duel_names_the_isotropic_member(truth):
         h = np.exp(-(f / 0.35) ** (5 / 3))
     real = np.real(np.fft.ifft2(np.fft.fft2(truth_sim) * h))
     real = real + rng.normal(0, 0.05, real.shape)
-    block = 32
-    origins = [(r, c) for r in range(0, n - block + 1, block)
-               for c in range(0, n - block + 1, block)]
-    groups = [[o for o in origins if (o[0] >= n / 2) == (i // 2 == 1)
-               and (o[1] >= n / 2) == (i % 2 == 1)] for i in range(4)]
-    full = build_spectral_data(sims, q_grid, real, origins=origins, block_px=block)
-    folds = []
-    for j, g in enumerate(groups):
-        train = [o for i, gg in enumerate(groups) if i != j for o in gg]
-        folds.append((build_spectral_data(sims, q_grid, real, origins=train, block_px=block),
-                      build_spectral_data(sims, q_grid, real, origins=g, block_px=block)))
-    sel = select_blur(full, folds, candidates=("detector_integration", "atmospheric_blur"),
-                      q_starts=(2.0,))
-    assert sel.steps, "no isotropic blur selected at all"
-    out = exact_duel(real, sims, q_grid, full, origins, groups, block, sel, "isotropic", 2.0)
+    out = _select_and_duel(real, sims, q_grid, "isotropic", 2.0)
     assert [s.name for s in out.steps] == [truth]
     p = out.final.effects[truth]
     if truth == "detector_integration":
@@ -91,21 +97,7 @@ def test_exact_duel_names_the_anisotropic_member(truth):
     else:
         h = np.exp(-2 * np.pi**2 * 0.75**2 * fx**2) * np.ones_like(fy)
     real = np.real(np.fft.ifft2(np.fft.fft2(truth_sim) * h)) + rng.normal(0, 0.05, (n, n))
-    block = 32
-    origins = [(r, c) for r in range(0, n - block + 1, block)
-               for c in range(0, n - block + 1, block)]
-    groups = [[o for o in origins if (o[0] >= n / 2) == (i // 2 == 1)
-               and (o[1] >= n / 2) == (i % 2 == 1)] for i in range(4)]
-    full = build_spectral_data(sims, q_grid, real, origins=origins, block_px=block)
-    folds = []
-    for j, g in enumerate(groups):
-        train = [o for i, gg in enumerate(groups) if i != j for o in gg]
-        folds.append((build_spectral_data(sims, q_grid, real, origins=train, block_px=block),
-                      build_spectral_data(sims, q_grid, real, origins=g, block_px=block)))
-    sel = select_blur(full, folds, candidates=("motion_smear", "off_nadir_anisotropy"),
-                      q_starts=(1.5,))
-    assert sel.steps, "no anisotropic blur selected at all"
-    out = exact_duel(real, sims, q_grid, full, origins, groups, block, sel, "anisotropic", 1.5)
+    out = _select_and_duel(real, sims, q_grid, "anisotropic", 1.5)
     assert [s.name for s in out.steps] == [truth]
     direction = next(v for k, v in out.final.effects[truth].items() if k.endswith("_deg"))
     assert abs(direction - 90.0) < 5.0, out.final.effects
