@@ -67,6 +67,8 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
        the power spectrum itself, by split halves: the pair chosen on the left half of the
        blocks must improve the right half's spectral error by the same margin, and vice
        versa.
+    3. A pitch the transfer gave (route 1, or forward selection) is moved to the scanned
+       pitch of lowest spectral error (:func:`_pitch_on_spectrum`; not under JPEG).
 
     Spectral errors on ``ev``'s blocks (route 2: its left and right halves), noise
     realisations from ``ev.noise_seed``; ``candidates``: the effects the fit may add
@@ -161,7 +163,7 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
 def _pitch_on_spectrum(setup: SpectralSetup, fit: TransferFit, model: ForwardModel,
                        se_fit: float, se_of: Callable[[ForwardModel], float]
                        ) -> tuple[TransferFit, ForwardModel]:
-    """Route 1's native pitch moved to where the power spectrum puts it.
+    """A native pitch fitted on the transfer moved to where the power spectrum puts it.
 
     The transfer fit sees resampling's coherent roll-off only, and fits its pitch short
     (development, seeds 1000-1415, the 70 true resamplings claimed: 0.04 px short on
