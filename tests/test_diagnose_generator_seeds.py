@@ -121,6 +121,18 @@ def test_stated_untestable_reads_the_rows_limits():
     assert gen.stated_untestable(row) == {"resampling"}
     row["truth"]["resampling"]["native_pitch_px"] = 1.5
     assert gen.score([row])["stated_testable_by_effect"]["resampling"] == [1, 0]
+    # a blur whose family was claimed by another name is not excused by its limit (the
+    # data showed the family: a swap, not an untestable effect)
+    row["truth"]["detector_integration"]["pitch_px"] = 1.2
+    assert "detector_integration" not in gen.stated_untestable(row)
+    swap = {"truth": {"motion_smear": {"length_px": 1.4}},
+            "claimed": {"off_nadir_anisotropy": {}},
+            "detection_limits": {"motion_smear": {"param": "length_px", "limit": 2.0,
+                                                  "absorbed_side": "below"}},
+            "se_base": 0.1, "se_refined": 0.05}
+    assert gen.stated_untestable(swap) == set()
+    swap["claimed"] = {}
+    assert gen.stated_untestable(swap) == {"motion_smear"}
 
 
 # ------------------------------------------------------------------ implementation variants

@@ -198,3 +198,14 @@ def test_compare_with_truth_rows():
     assert rows["detector_integration"]["note"] == (
         "below the stated detection limit pitch_px 1.30 at Q 1.60: absorbed into Q")
     assert rows["atmospheric_blur"]["note"].startswith("missed, though beyond")
+    # an anisotropic blur's limit reads alike, but not beside a claimed member of its
+    # family (that is a swap, the data showed the anisotropy)
+    doc["detection_limits"]["motion_smear"] = {"param": "length_px", "limit": 1.8,
+                                               "absorbed_side": "below", "q": 1.6}
+    doc["effects"][0]["indistinguishable_from"] = []
+    rows = {r["effect"]: r for r in compare_with_truth(doc, truth)}
+    assert rows["motion_smear"]["fitted"] is None and "note" not in rows["motion_smear"]
+    doc["effects"] = []
+    rows = {r["effect"]: r for r in compare_with_truth(doc, truth)}
+    assert rows["motion_smear"]["note"] == (
+        "below the stated detection limit length_px 1.80 at Q 1.60: absorbed into Q")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from geosim.diagnose.detection_limits import absorbed_by
+from geosim.diagnose.detection_limits import absorbed_by, family_claimed
 from geosim.diagnose.report_markdown import fmt
 
 __all__ = ["compare_with_truth", "format_truth_comparison"]
@@ -52,7 +52,8 @@ def compare_with_truth(doc: dict[str, Any], truth: dict[str, Any]) -> list[dict[
         row = {"effect": name, "fitted": found.get(name), "truth": true_eff.get(name)}
         if name in alt_of:
             row["note"] = f"indistinguishable on these data from the claimed {alt_of[name]}"
-        elif row["fitted"] is None and name in limits and row["truth"]:
+        elif (row["fitted"] is None and name in limits and row["truth"]
+              and not family_claimed(name, found)):
             row["note"] = _limit_note(limits[name], row["truth"])
         rows.append(row)
     return rows
@@ -60,8 +61,9 @@ def compare_with_truth(doc: dict[str, Any], truth: dict[str, Any]) -> list[dict[
 
 def _limit_note(lim: dict[str, Any], truth: dict[str, Any]) -> str | None:
     """Whether a missed effect's true value lies on the untestable side of the detection
-    limit the diagnosis stated (``diagnosis.json``'s ``detection_limits``): an isotropic
-    blur absorbed into Q, a resampling whose aliasing the spectrum does not resolve."""
+    limit the diagnosis stated (``diagnosis.json``'s ``detection_limits``): a blur absorbed
+    into Q (isotropic, or anisotropic in any direction), a resampling whose aliasing the
+    spectrum does not resolve."""
     value = truth.get(lim["param"])
     if value is None:
         return None
