@@ -74,6 +74,29 @@ def test_presampling_motion_smear_found_and_fit_improves():
     unc = claimed["motion_smear"]["uncertainty"]
     assert 0 < unc["length_px"] < 0.5 and 0 < unc["direction_deg"] < 20, unc
     assert 0 < unc["q"] < 0.2 * d.summary["refined"]["q"], unc
+    # the claimed smear lies beyond the limit the scene states for it, and the report
+    # lists neither anisotropic blur under "cannot test" (the data showed the family)
+    lim = d.summary["detection_limits"]["motion_smear"]
+    assert lim["limit"] is not None and lim["limit"] < 2.5, lim
+    report = diagnosis_markdown(d.summary)
+    assert "motion smear (motion_smear) shorter" not in report
+    assert "off-nadir blur (off_nadir_anisotropy) with σ below" not in report
+
+
+def test_short_smear_under_a_wide_psf_is_stated_untestable_in_any_direction():
+    """A 0.9 px smear under Q 4 optics: its anisotropy lies where the optics pass almost
+    nothing. It is not claimed, and diagnosis.json and the report say that a smear this
+    short is not testable here in any direction (not that there is none)."""
+    truth = {"motion_smear": {"length_px": 0.9, "direction_deg": 35.0}}
+    claimed, se_base, se_ref, d = _run(truth, q=4.0, seed=21)
+    assert not {"motion_smear", "off_nadir_anisotropy"} & set(claimed), list(claimed)
+    lim = d.summary["detection_limits"]["motion_smear"]
+    assert (lim["param"], lim["absorbed_side"]) == ("length_px", "below")
+    assert lim["limit"] is not None and lim["limit"] > 0.9, lim
+    assert "off_nadir_anisotropy" in d.summary["detection_limits"]
+    assert se_ref <= se_base + 1e-9
+    assert (f"shorter than {lim['limit']:.2f} px, in any direction, is not testable"
+            in diagnosis_markdown(d.summary))
 
 
 def test_noise_and_haze_from_independent_generator():
