@@ -156,7 +156,7 @@ ISOTROPIC_LIMITS = (
           absorbed_words="an atmospheric blur (atmospheric_blur) with f0 above {v:.2f} "
                          "cycles/px"),
 )
-#: the anisotropic blurs (one family: no limit for either where one is delivered)
+#: the anisotropic blurs (one family: where one is claimed, the report shows neither's line)
 ANISOTROPIC_LIMITS = (
     _Blur("motion_smear", weaker_is_low=True, direction="direction_deg",
           margin=ANISOTROPIC_MARGIN,
