@@ -240,3 +240,20 @@ def test_radiometric_tie_lists_the_other_name():
     col = select_radiometry(_tied_fit(offset_z=1.0), corr_px2=4.0)
     assert col.name == "colour_response" and "offset_dn" not in col.params
     assert [a["name"] for a in col.alternatives] == ["haze"]
+
+
+def test_q_grid_interpolation_is_linear_in_log_q_and_clamped():
+    """SpectralData.g_at against numpy's own interpolation (per frequency, in log q),
+    including Q outside the grid (clamped to its ends)."""
+    from geosim.diagnose.fit import SpectralData
+
+    rng = np.random.default_rng(3)
+    grid = np.exp(np.linspace(np.log(0.7), np.log(4.8), 18))
+    g_q = rng.random((18, 40)) + 1j * rng.random((18, 40))
+    data = SpectralData(fy=np.zeros(40), fx=np.zeros(40), t_real=np.zeros(40, complex),
+                        g_q=g_q, q_grid=grid, var=np.ones(40), n_blocks=4)
+    for q in (0.5, 0.7, 0.93, 1.7, 3.333, 4.8, 7.0):
+        want = np.array([np.interp(np.log(q), np.log(grid), g_q[:, k].real)
+                         + 1j * np.interp(np.log(q), np.log(grid), g_q[:, k].imag)
+                         for k in range(40)])
+        np.testing.assert_allclose(data.g_at(q), want, rtol=1e-12, atol=1e-12)
