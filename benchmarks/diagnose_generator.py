@@ -72,6 +72,8 @@ FAMILIES: dict[str, tuple[str, ...]] = {
     "geometric": ("misregistration",),
     "scene": ("scene_change",),
 }
+#: each effect's family (the inverse of FAMILIES)
+FAMILY_OF: dict[str, str] = {m: f for f, ms in FAMILIES.items() for m in ms}
 
 
 # ----------------------------------------------------------------------------- sources
@@ -422,8 +424,7 @@ def draw_effects(rng: np.random.Generator, n_effects: int,
 def draw_named_effects(rng: np.random.Generator, names: tuple[str, ...]
                        ) -> dict[str, dict[str, Any]]:
     """The named effects (at most one per family), parameters drawn from RANGES."""
-    fam_of = {m: f for f, ms in FAMILIES.items() for m in ms}
-    fams = [fam_of[n] for n in names]
+    fams = [FAMILY_OF[n] for n in names]
     if len(set(fams)) != len(fams):
         raise ValueError(f"effects {names}: at most one per family")
     return {n: draw_params(rng, n) for n in names}
@@ -639,12 +640,11 @@ def stated_untestable(row: dict[str, Any]) -> set[str]:
     among them (its report states no limit for it), nor one whose family (``FAMILIES``) it
     claimed by another name (the data showed the family: a swap, not an untestable
     effect)."""
-    fam_of = {m: f for f, ms in FAMILIES.items() for m in ms}
-    claimed_families = {fam_of.get(n, n) for n in row["claimed"]}
+    claimed_families = {FAMILY_OF.get(n, n) for n in row["claimed"]}
     out = set()
     for name, lim in (row.get("detection_limits") or {}).items():
         if (name not in row["truth"] or name in row["claimed"]
-                or fam_of.get(name, name) in claimed_families):
+                or FAMILY_OF.get(name, name) in claimed_families):
             continue
         value = row["truth"][name][lim["param"]]
         if (lim["limit"] is None or (value < lim["limit"] if lim["absorbed_side"] == "below"
@@ -695,10 +695,9 @@ def score(rows: list[dict[str, Any]]) -> dict[str, Any]:
             d = per.setdefault(n, {"tp": 0, "fp": 0, "fn": 0})
             d["tp" if n in r["truth"] and n in r["claimed"] else
               "fp" if n in r["claimed"] else "fn"] += 1
-    fam_of = {m: f for f, ms in FAMILIES.items() for m in ms}
 
     def fams(names: Any) -> set[str]:
-        return {fam_of.get(n, n) for n in names}
+        return {FAMILY_OF.get(n, n) for n in names}
 
     ftp = sum(len(fams(r["truth"]) & fams(r["claimed"])) for r in rows)
     ffp = sum(len(fams(r["claimed"]) - fams(r["truth"])) for r in rows)
