@@ -218,11 +218,13 @@ def test_jpeg_at_high_q_is_not_called_resampling():
     assert set(claimed) == {"compression"}, list(claimed)
     assert se_ref <= 0.5 * se_base, (se_base, se_ref)
     # the compression entry follows the schema of the others (found by a test, not a fit:
-    # no σ, the test's χ² as its evidence, the test itself under "test"), so a combined
-    # verdict over flights can take medians of it (it raised TypeError on the dict before)
+    # no σ, twice the lattice's log-likelihood gain as its evidence, the test itself under
+    # "test"), so a combined verdict over flights can take medians of it (it raised
+    # TypeError on the dict before)
     c = claimed["compression"]
+    assert abs(c["params"]["quality"] - 50) <= 1   # 49 and 50: steps ≤ 1 apart
     assert c["uncertainty"] == {} and isinstance(c["delta_bic"], float)
-    assert c["delta_bic"] == pytest.approx(min(c["test"]["row_z"], c["test"]["col_z"]) ** 2)
+    assert c["delta_bic"] == pytest.approx(2 * c["test"]["lattice_log_lik_gain"])
     out = combine_flights({"A": d.summary, "B": d.summary}, reference="A")
     (comb,) = [e for e in out["effects"] if e["name"] == "compression"]
     assert comb["votes"] == "2/2" and comb["delta_bic"] == pytest.approx(c["delta_bic"])
@@ -230,7 +232,8 @@ def test_jpeg_at_high_q_is_not_called_resampling():
     assert out["detection_limits"]["detector_integration"]["q"] == out["refined"]["q"]
     own = d.summary["detection_limits"]["resampling"]["limit"]
     assert out["detection_limits"]["resampling"]["limit_by_flight"] == [own, own]
-    assert f"block-edge step test χ² = {c['delta_bic']:.3g}" in diagnosis_markdown(d.summary)
+    assert (f"quantisation lattice, 2 Δ log-likelihood = {c['delta_bic']:.3g}"
+            in diagnosis_markdown(d.summary))
 
 
 def test_resampling_under_jpeg_beyond_the_optics_is_withdrawn(realdata, samples_dir):

@@ -120,11 +120,6 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model, setup, sel = joint_jpeg_blur(inp, model, setup, sel, window)
     model, setup, sel = robust_then_exact(inp, model, setup, sel, window)
     model = fit_scene_radiometry(inp, model, fit_mask)
-    if model.compression is None:
-        # second look, against the refined model: the baseline's blur misfit can hide the
-        # block steps (they stand out once the blur is modelled)
-        model = model.without(compression=find_compression(
-            inp, reg, model_img=model.deterministic(simulate)))
     model = estimate_scene_noise(inp, model, setup, fit_mask)
     model, setup, sel = dithered_refit(inp, model, setup, sel, window)
     # metrics over the pixels where both images show the same scene: outside every region

@@ -306,7 +306,8 @@ class Claim:
     rmse_after: float = float("nan")
     spectral_error_after: float = float("nan")
     #: the statistics of a claim found by a test rather than a fit (compression: the
-    #: block-edge step test's ratios, z-scores and phases per direction)
+    #: quantisation lattice's log-likelihood gain and the quality's margin, and the
+    #: block-edge steps' ratios, z-scores and phases per direction)
     test: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:

@@ -27,7 +27,7 @@ def diagnosis_markdown(s: dict[str, Any]) -> str:
         for e in s["effects"]:
             params = ", ".join(f"{k} = {fmt(v)}" for k, v in e["params"].items())
             lines.append(f"- **{e['name']}** ({params}). {e['explanation'].split(' Fitted:')[0]} "
-                         + ("Evidence: block-edge step test χ² = " if "test" in e
+                         + ("Evidence: quantisation lattice, 2 Δ log-likelihood = " if "test" in e
                             else "Evidence: ΔBIC = ") + fmt(e["delta_bic"])
                          + (f", held-out χ² {100 * e['heldout_gain']:.0f} % lower"
                             if e.get("heldout_gain") is not None else "")

@@ -41,11 +41,11 @@ def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     if model.compression is not None:
         c = model.compression
         cur = cur.without(compression=c)
-        # found by the block-edge step test, not by a fit: no σ for the quality, and the
-        # evidence in place of a ΔBIC is the test's χ² (the weaker direction's z²)
+        # read from the scene's quantisation lattice, not fitted: no σ for the quality, and
+        # the evidence in place of a ΔBIC is twice the lattice's log-likelihood gain over none
         out.append((Claim("compression", {"quality": c.quality,
                                           "block_offset_px": list(c.offset_px)},
-                          {}, float(min(c.test["row_z"], c.test["col_z"]) ** 2),
+                          {}, 2.0 * float(c.test["lattice_log_lik_gain"]),
                           test=dict(c.test)), cur))
     for st in sel.steps:
         if st.name not in model.blur:

@@ -1,5 +1,5 @@
-"""JPEG quality and blur fitted together: the quality re-estimated on the blurred model
-to a fixed point (:func:`joint_jpeg_blur`), the check that an isotropic blur is not the
+"""JPEG and blur fitted together: the blur re-selected with the JPEG linearised around the
+blurred model (:func:`joint_jpeg_blur`), the check that an isotropic blur is not the
 quality's uncertainty (:func:`jpeg_robust_isotropic`), and the refit with the claimed
 noise dithering the quantisation (:func:`dithered_refit`). Each refits within the blur
 fit's :class:`~geosim.diagnose.context.FitWindow` (fit mask, Q range, candidate effects,
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from geosim.diagnose.context import FitWindow
 from geosim.diagnose.model import CompressionFit, ForwardModel
-from geosim.diagnose.noise import noise_dither
 from geosim.diagnose.select import BlurSelection
 from geosim.diagnose.spectra import spectral_error
 from geosim.diagnose.stage_blur import (
@@ -21,23 +20,16 @@ from geosim.diagnose.stage_blur import (
 )
 from geosim.diagnose.stage_inputs import Inputs, greys
 from geosim.diagnose.stage_jpeg import (
-    MAX_CLAIMED_QUALITY,
     jpeg_linearised,
     jpeg_quality_for_scale,
     jpeg_step_scale,
-    match_quality,
 )
 from geosim.diagnose.stage_noise import estimate_scene_noise, realisations
-from geosim.diagnose.stage_radiometry import band_affine, fit_scene_radiometry
+from geosim.diagnose.stage_radiometry import fit_scene_radiometry
 
 __all__ = ["joint_jpeg_blur", "reselect_at_quality", "robust_then_exact",
-           "jpeg_robust_isotropic", "dithered_refit", "JPEG_QUALITY_TOL", "JPEG_MAX_ROUNDS",
-           "JPEG_STEP_MARGIN", "DITHER_SEED"]
+           "jpeg_robust_isotropic", "dithered_refit", "JPEG_STEP_MARGIN", "DITHER_SEED"]
 
-#: joint JPEG quality and blur: stop when the quality re-estimated on the refined model
-#: moves by less than this; at most this many re-selections
-JPEG_QUALITY_TOL = 2
-JPEG_MAX_ROUNDS = 3
 #: an isotropic blur claimed under JPEG must still be chosen when the quantisation steps
 #: are this much coarser than estimated (the block-edge moment estimate of the quality
 #: scatters by up to ≈ 25 % in step size on the development half, and a too-fine JPEG
@@ -50,35 +42,19 @@ DITHER_SEED = 12345
 
 def joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
                     window: FitWindow) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
-    """JPEG quality and blur, fitted to a common fixed point.
+    """JPEG and blur together: the blur selection redone with the JPEG's transfer
+    linearised around the refined (blurred) model (:mod:`geosim.diagnose.jpeg_transfer`),
+    where the first selection linearised it around the sharp baseline.
 
-    The quality is found by matching block-edge step energy, which depends on how sharp
-    the model is; the blur is found on the transfer against JPEG'd simulations, which
-    depends on the quality. A quality estimated on the too-sharp LV baseline comes out
-    too high (too little high-frequency loss in the JPEG'd simulations), and an isotropic
-    blur (``atmospheric_blur``) then stands in for the JPEG's loss. So: re-estimate the
-    quality on the refined (blurred) model, redo the blur selection with it, until the
-    quality moves by less than :data:`JPEG_QUALITY_TOL` (at most :data:`JPEG_MAX_ROUNDS`)."""
-    seen = {model.compression.quality} if model.compression is not None else set()
-    for k in range(JPEG_MAX_ROUNDS):
-        c = model.compression
-        if c is None:
-            break
-        ref = band_affine(model.without(compression=None, seam=None).blurred(inp.simulate),
-                          inp.real, inp.valid)
-        dither = noise_dither(model.noise)
-        if dither is not None:  # the scene's JPEG encoded a noisy product: so must the model's
-            ref = dither(ref, 0)
-        qual = match_quality(inp, ref, c.offset_px, fine_step=1)
-        if qual > MAX_CLAIMED_QUALITY:
-            break
-        # the first round always reselects: the JPEG's transfer is then linearised around
-        # the blurred model, not the sharp baseline (:mod:`geosim.diagnose.jpeg_transfer`)
-        if k > 0 and (abs(qual - c.quality) < JPEG_QUALITY_TOL or qual in seen):
-            break
-        seen.add(qual)
-        model, setup, sel = reselect_at_quality(inp, model, qual, window)
-    return model, setup, sel
+    The quality is the scene's own (its quantisation lattice,
+    :func:`~geosim.diagnose.jpeg_quality.lattice_quality`), so it does not move with the
+    blur and one re-selection suffices. (Until round 16 the quality was matched to the
+    block-edge steps of the re-encoded model and re-estimated on each refined model to a
+    fixed point; under very sharp optics that fixed point was a blurry model with a far
+    too coarse JPEG: development c331, quality 13 for 27.)"""
+    if model.compression is None:
+        return model, setup, sel
+    return reselect_at_quality(inp, model, model.compression.quality, window)
 
 
 def reselect_at_quality(inp: Inputs, model: ForwardModel, quality: int, window: FitWindow
@@ -128,25 +104,22 @@ def jpeg_robust_isotropic(inp: Inputs, model: ForwardModel, setup: SpectralSetup
 
 def dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
                    window: FitWindow) -> tuple[ForwardModel, SpectralSetup, BlurSelection]:
-    """Under JPEG with noise claimed: quality and blur refitted with the noise in the model.
+    """Under JPEG with noise claimed: the blur refitted with the noise in the model.
 
     The scene's JPEG encoded a noisy product; noise dithers the quantisation, so the JPEG
-    keeps more of the high frequencies (and leaves more block-edge steps) than it does on
-    the noise-free model the first fit linearised it around. That fit therefore saw the
-    JPEG too lossy and its quality too coarse, and blurred too little. The quality, the
-    JPEG's linearised transfer, the blur, the radiometry and the noise are fitted again
-    with noise realisations of the estimate before the JPEG; the refit is kept only if the
-    noise is still claimed against it, else the noise is not claimed (development c17: a
-    Q misfit under JPEG read as 2.7 DN² of noise, 0.7 DN² against the refit), and only if
-    the delivered refit's expected power spectrum fits the scene no worse than the first
-    fit's (development extension: without this check a false `resampling` was claimed in
-    two JPEG + noise scenes)."""
+    keeps more of the high frequencies than it does on the noise-free model the first fit
+    linearised it around. That fit therefore saw the JPEG too lossy and blurred too
+    little. The JPEG's linearised transfer, the blur, the radiometry and the noise are
+    fitted again with noise realisations of the estimate before the JPEG; the refit is
+    kept only if the noise is still claimed against it, else the noise is not claimed
+    (development c17: a Q misfit under JPEG read as 2.7 DN² of noise, 0.7 DN² against the
+    refit), and only if the delivered refit's expected power spectrum fits the scene no
+    worse than the first fit's (development extension: without this check a false
+    `resampling` was claimed in two JPEG + noise scenes)."""
     if model.compression is None or model.noise is None or not model.noise.claimed:
         return model, setup, sel
     start = model.without(radiometry=None)
     m2, setup2, sel2 = joint_jpeg_blur(inp, start, setup, sel, window)
-    if sel2 is sel:  # quality at the null end: nothing refitted
-        return model, setup, sel
     m2, setup2, sel2 = robust_then_exact(inp, m2, setup2, sel2, window)
     m2 = estimate_scene_noise(inp, fit_scene_radiometry(inp, m2.without(seam=None), window.mask),
                               setup2, window.mask)
