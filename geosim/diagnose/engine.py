@@ -43,7 +43,12 @@ from geosim.diagnose.stage_change import (
 from geosim.diagnose.stage_claims import claim_effects
 from geosim.diagnose.stage_inputs import grey, make_inputs
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
-from geosim.diagnose.stage_jpeg_refit import dithered_refit, joint_jpeg_blur, robust_then_exact
+from geosim.diagnose.stage_jpeg_refit import (
+    delivered_q,
+    dithered_refit,
+    joint_jpeg_blur,
+    robust_then_exact,
+)
 from geosim.diagnose.stage_noise import estimate_scene_noise, noise_helps
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
 from geosim.diagnose.stage_register import coregister
@@ -120,8 +125,12 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model, setup, sel = joint_jpeg_blur(inp, model, setup, sel, window)
     model, setup, sel = robust_then_exact(inp, model, setup, sel, window)
     model = fit_scene_radiometry(inp, model, fit_mask)
+    # under JPEG, Q on the delivered spectrum before the noise is read against the model
+    # (a Q misfit would read as noise), and again once the noise dithers the JPEG
+    model = delivered_q(inp, model, setup)
     model = estimate_scene_noise(inp, model, setup, fit_mask)
     model, setup, sel = dithered_refit(inp, model, setup, sel, window)
+    model = delivered_q(inp, model, setup)
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
     det = model.deterministic(simulate)

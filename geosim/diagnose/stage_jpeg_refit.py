@@ -7,6 +7,8 @@ Q starting values)."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from geosim.diagnose.context import FitWindow
 from geosim.diagnose.model import CompressionFit, ForwardModel
 from geosim.diagnose.select import BlurSelection
@@ -28,7 +30,8 @@ from geosim.diagnose.stage_noise import estimate_scene_noise, realisations
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
 
 __all__ = ["joint_jpeg_blur", "reselect_at_quality", "robust_then_exact",
-           "jpeg_robust_isotropic", "dithered_refit", "JPEG_STEP_MARGIN", "DITHER_SEED"]
+           "jpeg_robust_isotropic", "dithered_refit", "delivered_q", "JPEG_STEP_MARGIN",
+           "DITHER_SEED", "DELIVERED_Q_COARSE", "DELIVERED_Q_FINE"]
 
 #: an isotropic blur claimed under JPEG must still be chosen when the quantisation steps
 #: are this much coarser than estimated (the block-edge moment estimate of the quality
@@ -38,6 +41,10 @@ JPEG_STEP_MARGIN = 1.25
 #: seed of the noise realisations that compare the dithered refit with the first fit (the
 #: same realisations for both)
 DITHER_SEED = 12345
+#: Q under JPEG from the delivered spectrum (:func:`delivered_q`): a geometric grid of
+#: this ratio over the fit's Q range, then one of :data:`DELIVERED_Q_FINE` around its best
+DELIVERED_Q_COARSE = 1.08
+DELIVERED_Q_FINE = 1.02
 
 
 def joint_jpeg_blur(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: BlurSelection,
@@ -137,3 +144,37 @@ def dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: 
         # the refit was made for the power the JPEG keeps under noise; it must show there
         return model, setup, sel
     return m2, setup2, sel2
+
+
+def delivered_q(inp: Inputs, model: ForwardModel, setup: SpectralSetup) -> ForwardModel:
+    """Under JPEG, Q chosen on the simulation as delivered: blur, radiometry, noise, then
+    the JPEG last (as the camera encodes), its expected power spectrum against the scene's
+    on the fit's blocks; every other part of the model as fitted.
+
+    The transfer fit sees the JPEG through a transfer linearised around a model
+    (:mod:`geosim.diagnose.jpeg_transfer`); quantisation is not linear, and with the
+    quality read exactly from the scene's lattice that fit puts Q too high under sharp
+    optics (development c259: Q 0.82 at JPEG 40 fitted 1.08, the delivered spectrum's
+    minimum at 0.8; fresh c491: Q 0.89 at JPEG 60 fitted 2.19). The delivered spectrum
+    needs no linearisation. Searched over the fit's Q grid range
+    (:data:`DELIVERED_Q_COARSE`, then :data:`DELIVERED_Q_FINE` around the best); the fit's
+    Q is kept unless another fits strictly better."""
+    if model.compression is None:
+        return model
+
+    def se(q: float) -> float:
+        return spectral_error(greys(realisations(inp, model.without(q=q), DITHER_SEED)),
+                              inp.grey, block_px=setup.block_px, origins=setup.origins)
+
+    q_lo, q_hi = float(setup.q_grid[0]), float(setup.q_grid[-1])
+    n = int(np.ceil(np.log(q_hi / q_lo) / np.log(DELIVERED_Q_COARSE))) + 1
+    scores = {float(q): se(float(q)) for q in np.geomspace(q_lo, q_hi, n)}
+    scores[model.q] = se(model.q)
+    best = min(scores, key=scores.__getitem__)
+    for k in (-2, -1, 1, 2):
+        q = float(np.clip(best * DELIVERED_Q_FINE ** k, q_lo, q_hi))
+        scores.setdefault(q, se(q))
+    best = min(scores, key=scores.__getitem__)
+    if scores[best] >= scores[model.q]:
+        return model
+    return model.without(q=best)
