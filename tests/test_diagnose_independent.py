@@ -236,6 +236,31 @@ def test_jpeg_at_high_q_is_not_called_resampling():
             in diagnosis_markdown(d.summary))
 
 
+def test_jpeg_quality_exact_and_q_from_the_delivered_spectrum():
+    """JPEG 30 at Q 2.0 (Pillow, no other effect): the quality is read exactly from the
+    scene's lattice, and Q is chosen on the delivered spectrum (JPEG last): the transfer
+    fit through the linearised JPEG put it at 2.47 once the quality was exact."""
+    claimed, se_base, se_ref, d = _run({"compression": {"quality": 30}}, q=2.0, seed=7)
+    assert claimed["compression"]["params"]["quality"] == 30
+    assert abs(d.summary["refined"]["q"] - 2.0) < 0.1, d.summary["refined"]["q"]
+    assert se_ref <= 0.25 * se_base, (se_base, se_ref)
+
+
+def test_jpeg_under_very_sharp_optics(realdata, samples_dir):
+    """Development c259 (SJER tile, Q 0.82, JPEG 40 and haze; independent generator): the
+    earlier block-edge match gave quality 38 at a Q pinned near its floor (0.71); now the
+    lattice gives 40 and the delivered spectrum Q ≈ 0.8 (the linearised transfer fit alone:
+    1.08, and a refined spectral error 0.93 of the baseline's)."""
+    import diagnose_independent as bench
+
+    sources = gen.pick_sources(gen.list_sources(realdata, samples_dir))
+    row = bench.diagnose_case(gen.make_case(259, sources))
+    assert set(row["truth"]) == {"compression", "haze"}
+    assert row["claimed"]["compression"]["quality"] == 40
+    assert abs(row["q_refined"] - row["q_true"]) < 0.1, (row["q_refined"], row["q_true"])
+    assert row["se_refined"] <= 0.5 * row["se_base"], (row["se_base"], row["se_refined"])
+
+
 def test_resampling_under_jpeg_beyond_the_optics_is_withdrawn(realdata, samples_dir):
     """Development cases of benchmarks/diagnose_independent.py (made by the independent
     generator, none with resampling in its truth beside JPEG at high Q): c157 (off-nadir,

@@ -125,12 +125,16 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model, setup, sel = joint_jpeg_blur(inp, model, setup, sel, window)
     model, setup, sel = robust_then_exact(inp, model, setup, sel, window)
     model = fit_scene_radiometry(inp, model, fit_mask)
-    # under JPEG, Q on the delivered spectrum before the noise is read against the model
-    # (a Q misfit would read as noise), and again once the noise dithers the JPEG
-    model = delivered_q(inp, model, setup)
     model = estimate_scene_noise(inp, model, setup, fit_mask)
     model, setup, sel = dithered_refit(inp, model, setup, sel, window)
-    model = delivered_q(inp, model, setup)
+    if model.compression is not None:
+        # under JPEG, Q on the delivered spectrum; then the noise read again against that
+        # model (a Q misfit reads as noise) and Q chosen again with it (noise missing from
+        # the model reads as a sharper Q)
+        q_fit = model.q
+        model = delivered_q(inp, model, setup)
+        if model.q != q_fit:
+            model = delivered_q(inp, estimate_scene_noise(inp, model, setup, fit_mask), setup)
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
     det = model.deterministic(simulate)

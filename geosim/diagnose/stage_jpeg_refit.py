@@ -34,9 +34,11 @@ __all__ = ["joint_jpeg_blur", "reselect_at_quality", "robust_then_exact",
            "DITHER_SEED", "DELIVERED_Q_COARSE", "DELIVERED_Q_FINE"]
 
 #: an isotropic blur claimed under JPEG must still be chosen when the quantisation steps
-#: are this much coarser than estimated (the block-edge moment estimate of the quality
-#: scatters by up to ≈ 25 % in step size on the development half, and a too-fine JPEG
-#: leaves high frequencies that an isotropic blur then removes in its place)
+#: are this much coarser than estimated (set when the quality came from block-edge step
+#: energy, which scattered by up to ≈ 25 % in step size on the development half; the
+#: lattice's quality is exact since round 16, and the margin stays for the linearised
+#: JPEG's own approximation: a too-lossless JPEG model leaves high frequencies that an
+#: isotropic blur then removes in its place; not re-tuned)
 JPEG_STEP_MARGIN = 1.25
 #: seed of the noise realisations that compare the dithered refit with the first fit (the
 #: same realisations for both)
@@ -158,7 +160,10 @@ def delivered_q(inp: Inputs, model: ForwardModel, setup: SpectralSetup) -> Forwa
     minimum at 0.8; fresh c491: Q 0.89 at JPEG 60 fitted 2.19). The delivered spectrum
     needs no linearisation. Searched over the fit's Q grid range
     (:data:`DELIVERED_Q_COARSE`, then :data:`DELIVERED_Q_FINE` around the best); the fit's
-    Q is kept unless another fits strictly better."""
+    Q is kept unless another fits strictly better. The model's noise enters the delivered
+    spectrum, so the caller reads the noise again where Q moved (noise missing from the
+    model reads as a sharper Q: development c08, Q 1.42 with noise chosen at 1.14 before
+    the noise was in the model)."""
     if model.compression is None:
         return model
 
