@@ -51,7 +51,7 @@ from geosim.diagnose.stage_jpeg_refit import (
 )
 from geosim.diagnose.stage_noise import estimate_scene_noise, noise_helps
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
-from geosim.diagnose.stage_register import coregister
+from geosim.diagnose.stage_register import confirm_shift, coregister, unapplied
 from geosim.diagnose.stage_summary import PHYSICAL_Q, make_summary, mismatch_maps, plot_data
 from geosim.diagnose.stage_withdraw import (
     blur_at_q_floor,
@@ -135,6 +135,11 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         model = delivered_q(inp, model, setup)
         if model.q != q_fit:
             model = delivered_q(inp, estimate_scene_noise(inp, model, setup, fit_mask), setup)
+    # the global shift measured again against the refined model (the baseline's Q can be
+    # far off, and its aliasing then biases the shift)
+    reg = confirm_shift(inp, reg, grey(model.without(
+        registration=unapplied(reg), compression=None).deterministic(simulate)))
+    model = model.without(registration=reg)
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
     det = model.deterministic(simulate)

@@ -13,11 +13,12 @@ import numpy as np
 
 from geosim.diagnose.context import EvalContext
 from geosim.diagnose.fit import fit_transfer
-from geosim.diagnose.model import ForwardModel, Registration
+from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import BlurSelection
 from geosim.diagnose.stage_blur import ISOTROPIC, SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs
 from geosim.diagnose.stage_noise import realisations
+from geosim.diagnose.stage_register import unapplied
 
 __all__ = ["refit_without", "blur_at_q_floor", "jpeg_resampling_beyond_optics",
            "jpeg_delivered_isotropic", "never_worse", "JPEG_ISOTROPIC_SPECTRAL_GAIN",
@@ -184,11 +185,8 @@ def never_worse(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Spe
     if ok(model):
         return model, withdrawn
     # last resort: the baseline itself (e.g. a shift field whose interpolation smooths)
-    reg = model.registration
-    model = model.without(registration=Registration(
-        estimate=reg.estimate, affine=reg.affine, applied=False, shift_px=(0.0, 0.0),
-        whole_px=reg.whole_px, fill_idx=reg.fill_idx), compression=None, seam=None,
-        radiometry=None)
+    model = model.without(registration=unapplied(model.registration), compression=None,
+                          seam=None, radiometry=None)
     withdrawn.append({"name": "refined_model", "reason": "every refit fitted worse than the "
                       "baseline; the refined simulation is the baseline"})
     return model, withdrawn
