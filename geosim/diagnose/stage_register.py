@@ -1,5 +1,6 @@
 """Co-registration stage: a global sub-pixel shift, then a shift + rotation + scale field
-from local shifts when its displacement is clearly above the local shifts' scatter."""
+from local shifts when its displacement is clearly above the local shifts' scatter; the
+global shift confirmed against the refined model once it is fitted (:func:`confirm_shift`)."""
 
 from __future__ import annotations
 
@@ -17,8 +18,8 @@ from geosim.diagnose.select import MIN_DELTA_BIC
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.physics.geometry import fourier_shift
 
-__all__ = ["coregister", "confirm_shift", "unapplied", "field_sigma_px", "MIN_SHIFT_PX",
-           "MIN_FIELD_PX"]
+__all__ = ["coregister", "confirm_shift", "shift_is_clear", "unapplied", "field_sigma_px",
+           "MIN_SHIFT_PX", "MIN_FIELD_PX"]
 
 MIN_SHIFT_PX = 0.1
 #: smallest rotation/scale displacement (at the corners) worth a local shift field, px;
@@ -61,7 +62,7 @@ def coregister(inp: Inputs) -> Registration:
 
 
 def shift_is_clear(est: ShiftEstimate) -> bool:
-    """A global shift is applied (and claimed) when it is ≥ :data:`MIN_SHIFT_PX`, ≥ 3σ and
+    """A global shift is applied (and claimed) when it is ≥ :data:`MIN_SHIFT_PX`, > 3σ and
     its phase fit's ΔBIC ≥ the claim rule's."""
     mag = float(np.hypot(*est.shift_px))
     return (mag >= MIN_SHIFT_PX and est.delta_bic >= MIN_DELTA_BIC
