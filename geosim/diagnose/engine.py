@@ -14,6 +14,8 @@ cross-validation folds, forward blur selection) →
 :mod:`~geosim.diagnose.stage_jpeg_refit` (JPEG quality and blur together) →
 :func:`~geosim.diagnose.stage_radiometry.fit_scene_radiometry` →
 :func:`~geosim.diagnose.stage_noise.estimate_scene_noise` →
+:func:`~geosim.diagnose.stage_jpeg_refit.delivered_q` (Q under JPEG on the delivered spectrum) →
+:func:`~geosim.diagnose.stage_register.confirm_shift` (the shift against the refined model) →
 :mod:`~geosim.diagnose.stage_aliasing` and :mod:`~geosim.diagnose.stage_withdraw` (checks on
 the delivered spectrum; the refined simulation may not fit worse than the baseline) →
 :func:`~geosim.diagnose.stage_claims.claim_effects` and
