@@ -26,8 +26,8 @@ import numpy as np
 from scipy import fft as sfft
 from scipy.special import ndtr
 
-__all__ = ["JpegNoiseFit", "block_dct", "block_grid", "lattice_steps", "lattice_evidence",
-           "jpeg_noise_variance", "MIN_LATTICE_GAIN"]
+__all__ = ["JpegNoiseFit", "block_dct", "block_grid", "jitter_density", "lattice_steps",
+           "lattice_evidence", "jpeg_noise_variance", "MIN_LATTICE_GAIN"]
 
 #: RMS jitter (DN, coefficient units) of the decoded coefficients around their lattice
 #: (integer Y conversion, integer DCT, rounding of the decoded pixels to 8 bit)
@@ -90,6 +90,14 @@ def block_dct(grey: np.ndarray, offset_px: tuple[int, int], mask: np.ndarray | N
     return sfft.dctn(blk, type=2, norm="ortho", axes=(-2, -1)).reshape(-1, 64)
 
 
+def jitter_density(d: np.ndarray, step: np.ndarray | float,
+                   jitter: float = LATTICE_JITTER) -> np.ndarray:
+    """Unnormalised density of decoded values offset ``d`` from their nearest lattice point
+    (lattice ``step``), with Gaussian ``jitter``: the nearest point and its two neighbours,
+    Σ_m exp(−½ ((d + m·step) / jitter)²)."""
+    return sum(np.exp(-0.5 * ((d + m * step) / jitter) ** 2) for m in (-1, 0, 1))
+
+
 def lattice_steps(coef: np.ndarray, *, jitter: float = LATTICE_JITTER,
                   max_step: int = MAX_STEP) -> np.ndarray:
     """Quantisation step of each coefficient (columns of ``coef``): the integer step q whose
@@ -103,7 +111,7 @@ def lattice_steps(coef: np.ndarray, *, jitter: float = LATTICE_JITTER,
     for k in range(coef.shape[1]):
         x = coef[:, k][None, :]
         d = x - qs * np.rint(x / qs)
-        dens = sum(np.exp(-0.5 * ((d + m * qs) / jitter) ** 2) for m in (-1, 0, 1))
+        dens = jitter_density(d, qs, jitter)
         ll = np.sum(np.log(np.maximum(qs * dens / (jitter * np.sqrt(2 * np.pi)), 1e-300)),
                     axis=1)
         steps[k] = qs[int(np.argmax(ll)), 0]
@@ -115,7 +123,7 @@ def _lattice_gain(x: np.ndarray, *, jitter: float = LATTICE_JITTER, max_step: in
     """Log-likelihood gain of the best lattice (step ≥ 2) over none (step 1) for values x."""
     qs = np.arange(1, max_step + 1, dtype=float)[:, None]
     d = x[None, :] - qs * np.rint(x[None, :] / qs)
-    dens = sum(np.exp(-0.5 * ((d + m * qs) / jitter) ** 2) for m in (-1, 0, 1))
+    dens = jitter_density(d, qs, jitter)
     ll = np.sum(np.log(np.maximum(qs * dens, 1e-300)), axis=1)
     return float(np.max(ll[1:]) - ll[0])
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geosim.diagnose.jpeg_noise import LATTICE_JITTER, block_dct
+from geosim.diagnose.jpeg_noise import LATTICE_JITTER, block_dct, jitter_density
 
 __all__ = ["IJG_LUMA_TABLE", "ijg_luma_steps", "lattice_quality", "LatticeQuality",
            "QUALITIES"]
@@ -75,7 +75,7 @@ def _step_log_lik(values: np.ndarray, step: int, jitter: float = LATTICE_JITTER)
     s = float(step)
     m = np.rint(values / s)
     d = values - m * s
-    dens = sum(np.exp(-0.5 * ((d + j * s) / jitter) ** 2) for j in (-1, 0, 1))
+    dens = jitter_density(d, s, jitter)
     d_term = float(np.sum(np.log(np.maximum(dens / (jitter * np.sqrt(2 * np.pi)), 1e-300))))
     bins, counts = np.unique(np.abs(m), return_counts=True)
     b = LAPLACE_SCALES[:, None]

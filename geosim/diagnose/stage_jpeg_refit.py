@@ -30,7 +30,8 @@ from geosim.diagnose.stage_noise import estimate_scene_noise, realisations
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
 
 __all__ = ["joint_jpeg_blur", "reselect_at_quality", "robust_then_exact",
-           "jpeg_robust_isotropic", "dithered_refit", "delivered_q", "JPEG_STEP_MARGIN",
+           "jpeg_robust_isotropic", "dithered_refit", "delivered_q", "expected_se",
+           "JPEG_STEP_MARGIN",
            "DITHER_SEED", "DELIVERED_Q_COARSE", "DELIVERED_Q_FINE"]
 
 #: an isotropic blur claimed under JPEG must still be chosen when the quantisation steps
@@ -137,15 +138,18 @@ def dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: 
         # under the first quality and blur): not claimed, first fit kept
         return model.without(noise=m2.noise), setup, sel
 
-    def expected_se(m: ForwardModel) -> float:
-        # the delivered simulation (JPEG last, on the noisy product): its expected spectrum
-        return spectral_error(greys(realisations(inp, m, DITHER_SEED)), inp.grey,
-                              block_px=setup.block_px, origins=setup.origins)
-
-    if expected_se(m2) > expected_se(model):
+    if expected_se(inp, m2, setup) > expected_se(inp, model, setup):
         # the refit was made for the power the JPEG keeps under noise; it must show there
         return model, setup, sel
     return m2, setup2, sel2
+
+
+def expected_se(inp: Inputs, m: ForwardModel, setup: SpectralSetup) -> float:
+    """Spectral error of ``m``'s delivered simulation (JPEG last, on the noisy product;
+    with noise claimed, the mean of the realisations from :data:`DITHER_SEED`) on the
+    fit's blocks: its expected spectrum against the scene's."""
+    return spectral_error(greys(realisations(inp, m, DITHER_SEED)), inp.grey,
+                          block_px=setup.block_px, origins=setup.origins)
 
 
 def delivered_q(inp: Inputs, model: ForwardModel, setup: SpectralSetup) -> ForwardModel:
@@ -168,8 +172,7 @@ def delivered_q(inp: Inputs, model: ForwardModel, setup: SpectralSetup) -> Forwa
         return model
 
     def se(q: float) -> float:
-        return spectral_error(greys(realisations(inp, model.without(q=q), DITHER_SEED)),
-                              inp.grey, block_px=setup.block_px, origins=setup.origins)
+        return expected_se(inp, model.without(q=q), setup)
 
     q_lo, q_hi = float(setup.q_grid[0]), float(setup.q_grid[-1])
     n = int(np.ceil(np.log(q_hi / q_lo) / np.log(DELIVERED_Q_COARSE))) + 1
