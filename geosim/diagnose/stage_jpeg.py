@@ -19,16 +19,10 @@ from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_radiometry import band_affine
 
 __all__ = ["blockiness", "find_compression", "jpeg_linearised",
-           "jpeg_step_scale", "jpeg_quality_for_scale", "MAX_CLAIMED_QUALITY",
-           "MIN_BLOCK_RATIO", "MIN_BLOCK_Z"]
+           "jpeg_step_scale", "jpeg_quality_for_scale", "MAX_CLAIMED_QUALITY"]
 
 #: compression is claimed only below this JPEG quality (the top of the range is its null)
 MAX_CLAIMED_QUALITY = 90
-#: block-edge step test on the baseline residual (ratio to other phases and z-score, both
-#: axes; tuned on the development half): until round 16 a gate of the compression test,
-#: now only what a structured residual's steps are measured against (tests, report)
-MIN_BLOCK_RATIO = 1.2
-MIN_BLOCK_Z = 3.0
 
 
 def blockiness(residual_grey: np.ndarray, mask: np.ndarray, *, period: int = 8
@@ -76,8 +70,8 @@ def find_compression(inp: Inputs, reg: Registration) -> CompressionFit | None:
     Both come from the real scene alone, so neither depends on how well the baseline
     fits it. The block-edge steps of the residual against the baseline (:func:`blockiness`)
     give the first guess of the grid and are reported in ``test``, but do not decide:
-    until round 16 they had to pass :data:`MIN_BLOCK_RATIO` and :data:`MIN_BLOCK_Z` first,
-    and under a blur misfit of the baseline they did not (fresh validation c491, JPEG 60
+    until round 16 they had to pass first (ratio to the other phases > 1.2 and z > 3 on
+    both axes), and under a blur misfit of the baseline they did not (fresh validation c491, JPEG 60
     at Q 0.89; development c23, JPEG 66 with noise), while the lattice is the JPEG's
     whatever the residual (first 134 development scenes: compressed ≥ 245, uncompressed
     ≤ 3.9)."""
