@@ -26,7 +26,7 @@ a·s + b from block variances of the residual against block brightness.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -39,7 +39,7 @@ from geosim.diagnose.spectra import hann2d
 __all__ = [
     "SpectralData", "TransferFit", "build_spectral_data", "fit_transfer", "model_transfer",
     "evaluate_chi2", "fit_radiometry", "fit_noise", "NoiseFit", "RadiometryFit",
-    "HANN_CORRELATION",
+    "HANN_CORRELATION", "BinFilter", "used_bins",
 ]
 
 #: number of frequency bins one independent Welch estimate spreads over with a 2-D Hann window
@@ -97,9 +97,23 @@ class SpectralData:
         return (1 - t) * self.g_q[j] + t * self.g_q[j + 1]
 
 
+#: ``keep(fy, fx)`` → bool: the frequency bins (cycles/px) a transfer fit may use
+BinFilter = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def used_bins(fy: np.ndarray, fx: np.ndarray, f_max: float = 0.5,
+              keep: BinFilter | None = None) -> np.ndarray:
+    """The bins of a block's FFT grid (``fy``, ``fx``: cycles/px) a transfer fit uses: one
+    of each conjugate pair, DC excluded, radius ≤ ``f_max``, and where ``keep`` allows."""
+    fr = np.hypot(fy, fx)
+    half = ((fx > 0) | ((fx == 0) & (fy > 0))) & (fr <= f_max) & (fr > 0)
+    return half if keep is None else half & keep(fy, fx)
+
+
 def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float],
                         real_grey: np.ndarray, *, origins: list[tuple[int, int]],
-                        block_px: int, f_max: float = 0.5) -> SpectralData:
+                        block_px: int, f_max: float = 0.5,
+                        keep: BinFilter | None = None) -> SpectralData:
     """Welch spectra of the real scene and the Q-grid simulations against the sharpest.
 
     Parameters
@@ -111,6 +125,9 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
         Welch block origins (e.g. one half of the scene for held-out validation).
     f_max
         Largest radial frequency used, cycles per pixel.
+    keep
+        ``keep(fy, fx)``: which bins the fit may use (under JPEG, those where the JPEG's
+        linearised transfer was measured); None: all.
     """
     w = hann2d(block_px)
     n = len(origins)
@@ -130,8 +147,7 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
     g = [np.sum(ffts(s) * np.conj(f0), axis=0) / np.maximum(s00, 1e-30) for s in sims_grey]
     fy = np.fft.fftfreq(block_px)[:, None] * np.ones((1, block_px))
     fx = np.fft.fftfreq(block_px)[None, :] * np.ones((block_px, 1))
-    fr = np.hypot(fy, fx)
-    half = ((fx > 0) | ((fx == 0) & (fy > 0))) & (fr <= f_max) & (fr > 0)
+    half = used_bins(fy, fx, f_max, keep)
     t = sr0 / np.maximum(s00, 1e-30)
     coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
     var = (1.0 - coh) / (2.0 * n * coh) * np.abs(t) ** 2 + TRANSFER_FLOOR**2

@@ -23,6 +23,20 @@ more of the model's high frequencies than the JPEG of the model alone (Pillow, q
 claimed, H_J is therefore measured on noise realisations, H_J = Σ F(J(m + n)) F(m)* /
 Σ |F(m)|² (``dither``): the noise is independent of m, so the cross-spectrum keeps only
 the part of the JPEG'd noisy product that is coherent with the model.
+
+**Only where the reference holds content.** H_J is a ratio, and where the reference has
+(almost) no power, beyond its optical cut-off, it is 0/0: on a generator scene JPEG'd at
+quality 30 the ratio measured at 0.35–0.5 cycles/px was 0.06 on a reference at Q 1.0 and
+0.43–0.50 on references at Q 2.5–3.5 (529 blocks; the JPEG's block-edge power there,
+≈ 10⁶ against the reference's 10¹–10², is incoherent with it), i.e. the clipped ratio of
+two noises. Those values made the blurrier reference pass *more* of a sharper
+simulation's high frequencies, a positive feedback on Q (round 16: Q 2.47 for 2.0) and
+room for a resampling that was not there (development c413, c487). Each bin's H_J
+therefore carries its standard error (regression of the JPEG'd block spectra on the
+reference's, ``se² = Σ|F(J) − H F(m)|² / (n Σ|F(m)|²)``, halved for the conjugate pair
+the sign quadrants share), and bins where H_J is not at least :data:`MEASURED_Z` standard
+errors above zero are left out of the transfer fits (``measured``): the linearisation says
+nothing there.
 """
 
 from __future__ import annotations
@@ -40,6 +54,9 @@ __all__ = ["JpegTransfer", "jpeg_transfer", "DITHER_REALISATIONS"]
 
 #: noise realisations averaged when the JPEG's transfer is measured under noise
 DITHER_REALISATIONS = 2
+#: a bin's H_J is used only where it is this many standard errors above zero (one chance
+#: pass in ≈ 740 bins of pure noise; not tuned)
+MEASURED_Z = 3.0
 
 
 @dataclass(frozen=True)
@@ -49,6 +66,9 @@ class JpegTransfer:
 
     grid: np.ndarray
     block_px: int
+    #: bins where H_J is measured (``grid`` at least :data:`MEASURED_Z` standard errors
+    #: above zero); None: every bin
+    measured: np.ndarray | None = None
 
     def __call__(self, fy: np.ndarray, fx: np.ndarray) -> np.ndarray:
         """H_J at any frequencies (cycles/px), bilinear between the block's bins."""
@@ -57,6 +77,16 @@ class JpegTransfer:
         iy, ix = np.broadcast_arrays(iy, ix)
         return ndimage.map_coordinates(self.grid, [iy.ravel(), ix.ravel()], order=1,
                                        mode="nearest").reshape(iy.shape)
+
+    def measured_at(self, fy: np.ndarray, fx: np.ndarray) -> np.ndarray:
+        """Whether H_J was measured at frequencies ``fy``, ``fx`` (cycles/px; its nearest
+        bin): the bins a transfer fit through this linearisation may use."""
+        iy = np.clip(np.rint(np.abs(fy) * self.block_px), 0, self.grid.shape[0] - 1)
+        ix = np.clip(np.rint(np.abs(fx) * self.block_px), 0, self.grid.shape[1] - 1)
+        iy, ix = np.broadcast_arrays(iy.astype(int), ix.astype(int))
+        if self.measured is None:
+            return np.ones(iy.shape, bool)
+        return self.measured[iy, ix]
 
     def apply(self, img: np.ndarray) -> np.ndarray:
         """``img`` (2-D or bands first) filtered by H_J."""
@@ -72,7 +102,8 @@ def jpeg_transfer(reference: np.ndarray, compress: Callable[[np.ndarray], np.nda
     radiometry) over the Welch blocks at ``origins``.
 
     H_J = Re Σ F(J(m)) F(m)* / Σ |F(m)|² (grey, Hann-windowed blocks), averaged over the
-    four sign quadrants and clipped to [0, 1]: a coherent loss, never a gain.
+    four sign quadrants and clipped to [0, 1]: a coherent loss, never a gain; ``measured``
+    where it is :data:`MEASURED_Z` standard errors above zero.
 
     ``dither(m, k)``: ``m`` with noise realisation ``k`` added (and rounded as the product
     is), when the product is noisy before its JPEG; H_J is then the coherent transfer of
@@ -85,21 +116,29 @@ def jpeg_transfer(reference: np.ndarray, compress: Callable[[np.ndarray], np.nda
     else:
         jpegs = [grey(np.asarray(compress(dither(ref, k)), float)) for k in range(n_dither)]
     w = hann2d(block_px)
-    num = np.zeros((block_px, block_px), complex)
-    den = np.zeros((block_px, block_px))
+    fas, fbs = [], []
     for r, c in origins:
         a = ref_g[r:r + block_px, c:c + block_px]
-        fa = np.fft.fft2((a - a.mean()) * w)
-        den += np.abs(fa) ** 2
-        for jp_g in jpegs:
-            b = jp_g[r:r + block_px, c:c + block_px]
-            num += np.fft.fft2((b - b.mean()) * w) * np.conj(fa) / len(jpegs)
-    h = np.real(num) / np.maximum(den, 1e-30)
-    half = block_px // 2
-    quad = np.zeros((half + 1, half + 1))
-    for i in range(half + 1):
-        for j in range(half + 1):
-            quad[i, j] = np.mean([h[si * i % block_px, sj * j % block_px]
-                                  for si in (1, -1) for sj in (1, -1)])
-    quad[0, 0] = 1.0
-    return JpegTransfer(np.clip(quad, 0.0, 1.0), block_px)
+        fas.append(np.fft.fft2((a - a.mean()) * w))
+        fbs.append([np.fft.fft2((b - b.mean()) * w)
+                    for b in (jp_g[r:r + block_px, c:c + block_px] for jp_g in jpegs)])
+    fa = np.array(fas)                      # (block, fy, fx)
+    fb = np.array(fbs)                      # (block, realisation, fy, fx)
+    den = np.maximum(np.sum(np.abs(fa) ** 2, axis=0), 1e-30)
+    num = np.mean(np.sum(fb * np.conj(fa)[:, None], axis=0), axis=0)
+    h = np.real(num) / den
+    # regression of the JPEG'd spectra on the reference's: residual power per bin
+    resid = np.mean(np.sum(np.abs(fb - h * fa[:, None]) ** 2, axis=0), axis=0)
+    var = resid / (len(origins) * den)
+    quad, quad_var = _sign_quadrants(h, block_px), _sign_quadrants(var, block_px) / 2.0
+    quad[0, 0], quad_var[0, 0] = 1.0, 0.0
+    measured = quad > MEASURED_Z * np.sqrt(quad_var)
+    return JpegTransfer(np.clip(quad, 0.0, 1.0), block_px, measured)
+
+
+def _sign_quadrants(a: np.ndarray, block_px: int) -> np.ndarray:
+    """``a`` (block_px², FFT order) averaged over the four sign quadrants, on
+    |fy|, |fx| ≤ 0.5 cycles/px."""
+    idx = np.arange(block_px // 2 + 1)
+    return np.mean([a[np.ix_(si * idx % block_px, sj * idx % block_px)]
+                    for si in (1, -1) for sj in (1, -1)], axis=0)
