@@ -140,3 +140,32 @@ def test_dithered_transfer_models_the_jpeg_of_a_noisy_product(sharp):
     err_dith = float(np.mean(t_quad[band] - dithered.grid[band]))
     assert err_plain > 0.02            # the noise-free linearisation loses too much
     assert abs(err_dith) < 0.4 * err_plain
+
+
+def _low_pass(img: np.ndarray, f_cut: float) -> np.ndarray:
+    """Ideal isotropic low-pass at ``f_cut`` cycles/px (numpy FFT, periodic), every band."""
+    fy = np.fft.fftfreq(img.shape[-2])[:, None]
+    fx = np.fft.fftfreq(img.shape[-1])[None, :]
+    keep = np.hypot(fy, fx) <= f_cut
+    return np.real(np.fft.ifft2(np.fft.fft2(img) * keep))
+
+
+def test_transfer_uncertainty_counts_where_the_reference_has_no_content(sharp):
+    """A reference with no content beyond 0.2 cycles/px (ideal low-pass, numpy), JPEG'd by
+    Pillow at quality 30: beyond the cut-off H_J is 0/0 (the JPEG's block-edge power
+    against none of the reference's), so every bin there must be unusable (relative
+    variance infinite) or carry a relative error of at least 30 %; below it, where the
+    reference has its power, every bin up to 0.1 cycles/px is usable with a relative
+    error under 20 %. On the unfiltered image and a near-lossless JPEG every bin up to
+    0.3 cycles/px is known within 10 %."""
+    origins = block_origins(sharp.shape[-2:], block_px=BLOCK)
+    fy, fx = np.broadcast_arrays(np.fft.fftfreq(BLOCK)[:, None], np.fft.fftfreq(BLOCK)[None, :])
+    f = np.hypot(fy, fx)
+    cut = jpeg_transfer(_low_pass(sharp, 0.2), _pillow_jpeg(30), origins, BLOCK, _grey)
+    rv = cut.relative_variance(fy, fx)
+    assert rv.shape == (BLOCK, BLOCK)
+    assert np.all(rv[f > 0.3] > 0.3 ** 2), rv[f > 0.3]
+    assert np.mean(np.isinf(rv[f > 0.3])) > 0.5
+    assert np.all(rv[(f > 0) & (f <= 0.1)] < 0.2 ** 2)
+    full = jpeg_transfer(sharp, _pillow_jpeg(100), origins, BLOCK, _grey)
+    assert np.all(full.relative_variance(fy, fx)[f <= 0.3] < 0.1 ** 2)
