@@ -32,9 +32,9 @@ from geosim.diagnose.effects import BlurEffect, get_effect
 from geosim.diagnose.fit import (
     HANN_CORRELATION,
     TRANSFER_FLOOR,
-    RelativeVariance,
+    BinFilter,
     TransferFit,
-    transfer_bins,
+    used_bins,
 )
 from geosim.diagnose.spectra import hann2d
 from geosim.physics.otf import frequency_grid
@@ -92,10 +92,9 @@ class ExactBlocks:
     @classmethod
     def build(cls, sims: ExactSimulations, real_grey: np.ndarray,
               origins: list[tuple[int, int]], block_px: int,
-              rel_var: RelativeVariance | None = None) -> ExactBlocks:
-        """Windowed block spectra of the sharpest simulation and the real scene; ``rel_var``:
-        a linearised JPEG's relative variance per bin
-        (:func:`~geosim.diagnose.fit.transfer_bins`)."""
+              keep: BinFilter | None = None) -> ExactBlocks:
+        """Windowed block spectra of the sharpest simulation and the real scene; ``keep``:
+        the bins the fit may use (:func:`~geosim.diagnose.fit.used_bins`)."""
         f0 = _block_ffts(sims.sharpest, origins, block_px)
         fr = _block_ffts(np.asarray(real_grey, float), origins, block_px)
         s00 = np.maximum(np.sum(np.abs(f0) ** 2, axis=0), 1e-30)
@@ -103,10 +102,10 @@ class ExactBlocks:
         sr0 = np.sum(fr * np.conj(f0), axis=0)
         fy = np.fft.fftfreq(block_px)[:, None] * np.ones((1, block_px))
         fx = np.fft.fftfreq(block_px)[None, :] * np.ones((block_px, 1))
+        half = used_bins(fy, fx, keep=keep)
         t = sr0 / s00
         coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
         var = (1.0 - coh) / (2.0 * len(origins) * coh) * np.abs(t) ** 2 + TRANSFER_FLOOR**2
-        half, var = transfer_bins(fy, fx, t, var, rel_var=rel_var)
         return cls(list(origins), block_px, f0, s00, half, t[half], var[half])
 
     def transfer(self, img: np.ndarray, gain: float) -> np.ndarray:

@@ -31,7 +31,7 @@ from dataclasses import replace
 import numpy as np
 
 from geosim.diagnose.exact import ExactBlocks, ExactSimulations, duel, exact_fit, in_sample_best
-from geosim.diagnose.fit import RelativeVariance, SpectralData, fit_transfer
+from geosim.diagnose.fit import BinFilter, SpectralData, fit_transfer
 from geosim.diagnose.select import (
     AMBIGUITY_CV,
     BLUR_FAMILY,
@@ -59,7 +59,7 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
                full: SpectralData, origins: list[tuple[int, int]],
                fold_groups: Sequence[Sequence[tuple[int, int]]], block_px: int,
                sel: BlurSelection, family: str, q_base: float,
-               rel_var: RelativeVariance | None = None) -> BlurSelection:
+               keep: BinFilter | None = None) -> BlurSelection:
     """Decide the claimed member of ``family`` by the exact model's χ² on all blocks.
 
     Parameters
@@ -80,9 +80,8 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
         ``"isotropic"``).
     q_base
         The LV baseline Q (a second starting value).
-    rel_var
-        Under JPEG, the relative variance its linearisation adds per bin (as the fast
-        fit's ``full`` was built with); None: none.
+    keep
+        The bins the fits may use (as the fast fit's ``full`` was built with); None: all.
 
     Returns
     -------
@@ -101,13 +100,13 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
     starts = {m: fit_transfer(full, [*others, m], q_starts=qs) for m in members}
     without = fit_transfer(full, others, q_starts=qs) if others else sel.null
     sims = ExactSimulations(sims_grey, q_grid)
-    blocks = ExactBlocks.build(sims, grey, origins, block_px, rel_var)
+    blocks = ExactBlocks.build(sims, grey, origins, block_px, keep)
     folds = []
     if len(fold_groups) >= 2:
         for j, g in enumerate(fold_groups):
             train = [o for i, gg in enumerate(fold_groups) if i != j for o in gg]
-            folds.append((ExactBlocks.build(sims, grey, train, block_px, rel_var),
-                          ExactBlocks.build(sims, grey, list(g), block_px, rel_var)))
+            folds.append((ExactBlocks.build(sims, grey, train, block_px, keep),
+                          ExactBlocks.build(sims, grey, list(g), block_px, keep)))
     res = duel(sims, blocks, folds, starts, without)
     ok = [m for m in members if not at_bound(m, res.fits[m].effects[m])
           and clearly_present(m, res.fits[m].effects[m])

@@ -39,7 +39,7 @@ from geosim.diagnose.spectra import hann2d
 __all__ = [
     "SpectralData", "TransferFit", "build_spectral_data", "fit_transfer", "model_transfer",
     "evaluate_chi2", "fit_radiometry", "fit_noise", "NoiseFit", "RadiometryFit",
-    "HANN_CORRELATION", "RelativeVariance", "transfer_bins",
+    "HANN_CORRELATION", "BinFilter", "used_bins",
 ]
 
 #: number of frequency bins one independent Welch estimate spreads over with a 2-D Hann window
@@ -97,30 +97,23 @@ class SpectralData:
         return (1 - t) * self.g_q[j] + t * self.g_q[j + 1]
 
 
-#: ``rel_var(fy, fx)``: relative variance a transfer measured through a linearised
-#: JPEG carries per frequency bin (cycles/px) besides its own; infinite: bin unusable
-RelativeVariance = Callable[[np.ndarray, np.ndarray], np.ndarray]
+#: ``keep(fy, fx)`` → bool: the frequency bins (cycles/px) a transfer fit may use
+BinFilter = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-def transfer_bins(fy: np.ndarray, fx: np.ndarray, t: np.ndarray, var: np.ndarray,
-                  f_max: float = 0.5, rel_var: RelativeVariance | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The bins of a block's FFT grid (``fy``, ``fx``: cycles/px) a transfer fit uses (one
-    of each conjugate pair, DC excluded, radius ≤ ``f_max``, finite ``rel_var``) and the
-    variance of the transfer ``t`` there: ``var`` plus ``|t|² rel_var``."""
+def used_bins(fy: np.ndarray, fx: np.ndarray, f_max: float = 0.5,
+              keep: BinFilter | None = None) -> np.ndarray:
+    """The bins of a block's FFT grid (``fy``, ``fx``: cycles/px) a transfer fit uses: one
+    of each conjugate pair, DC excluded, radius ≤ ``f_max``, and where ``keep`` allows."""
     fr = np.hypot(fy, fx)
     half = ((fx > 0) | ((fx == 0) & (fy > 0))) & (fr <= f_max) & (fr > 0)
-    if rel_var is None:
-        return half, var
-    extra = rel_var(fy, fx)
-    half &= np.isfinite(extra)
-    return half, var + np.abs(t) ** 2 * np.where(half, extra, 0.0)
+    return half if keep is None else half & keep(fy, fx)
 
 
 def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float],
                         real_grey: np.ndarray, *, origins: list[tuple[int, int]],
                         block_px: int, f_max: float = 0.5,
-                        rel_var: RelativeVariance | None = None) -> SpectralData:
+                        keep: BinFilter | None = None) -> SpectralData:
     """Welch spectra of the real scene and the Q-grid simulations against the sharpest.
 
     Parameters
@@ -132,10 +125,9 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
         Welch block origins (e.g. one half of the scene for held-out validation).
     f_max
         Largest radial frequency used, cycles per pixel.
-    rel_var
-        Under JPEG, the relative variance its linearised transfer adds per bin
-        (:meth:`~geosim.diagnose.jpeg_transfer.JpegTransfer.relative_variance`); None:
-        none.
+    keep
+        ``keep(fy, fx)``: which bins the fit may use (under JPEG, those where the JPEG's
+        linearised transfer was measured); None: all.
     """
     w = hann2d(block_px)
     n = len(origins)
@@ -155,10 +147,10 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
     g = [np.sum(ffts(s) * np.conj(f0), axis=0) / np.maximum(s00, 1e-30) for s in sims_grey]
     fy = np.fft.fftfreq(block_px)[:, None] * np.ones((1, block_px))
     fx = np.fft.fftfreq(block_px)[None, :] * np.ones((block_px, 1))
+    half = used_bins(fy, fx, f_max, keep)
     t = sr0 / np.maximum(s00, 1e-30)
     coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
     var = (1.0 - coh) / (2.0 * n * coh) * np.abs(t) ** 2 + TRANSFER_FLOOR**2
-    half, var = transfer_bins(fy, fx, t, var, f_max, rel_var)
     return SpectralData(fy=fy[half], fx=fx[half], t_real=t[half],
                         g_q=np.array([gi[half] for gi in g]), q_grid=np.asarray(q_grid, float),
                         var=var[half], n_blocks=n, coherence=coh[half])

@@ -24,19 +24,21 @@ claimed, H_J is therefore measured on noise realisations, H_J = Σ F(J(m + n)) F
 Σ |F(m)|² (``dither``): the noise is independent of m, so the cross-spectrum keeps only
 the part of the JPEG'd noisy product that is coherent with the model.
 
-**Its uncertainty counts where the reference holds little.** H_J is a ratio, and where
-the reference has (almost) no power, beyond its optical cut-off, it is 0/0: on a generator
-scene JPEG'd at quality 30 the ratio at 0.35–0.5 cycles/px was 0.06 on a reference at Q 1.0
-and 0.43–0.50 on references at Q 2.5–3.5 (529 blocks; the JPEG's block-edge power there,
+**Only where the reference holds content.** H_J is a ratio, and where the reference has
+(almost) no power, beyond its optical cut-off, it is 0/0: on a generator scene JPEG'd at
+quality 30 the ratio measured at 0.35–0.5 cycles/px was 0.06 on a reference at Q 1.0 and
+0.43–0.50 on references at Q 2.5–3.5 (529 blocks; the JPEG's block-edge power there,
 ≈ 10⁶ against the reference's 10¹–10², is incoherent with it), i.e. the clipped ratio of
-two noises. Those values made a blurrier reference pass *more* of a sharper simulation's
-high frequencies, a positive feedback on Q (round 16: Q 2.47 for 2.0) and room for a
-resampling that was not there (development c413, c487). Each bin's H_J therefore carries
-its standard error (regression of the JPEG'd block spectra on the reference's,
-``se² = Σ|F(J) − H F(m)|² / (n Σ|F(m)|²)``, halved for the conjugate pair the sign
-quadrants share). A transfer measured through H_J is divided by it, so its relative
-variance (se / H)² adds to the transfer's (:meth:`JpegTransfer.relative_variance`), and
-bins where H_J is not :data:`MEASURED_Z` standard errors above zero are left out.
+two noises. Those values made the blurrier reference pass *more* of a sharper
+simulation's high frequencies, a positive feedback on Q (round 16: Q 2.47 for 2.0) and
+room for a resampling that was not there (development c413, c487). Each bin's H_J
+therefore carries its standard error (regression of the JPEG'd block spectra on the
+reference's, ``se² = Σ|F(J) − H F(m)|² / (n Σ|F(m)|²)``, halved for the conjugate pair
+the sign quadrants share), and bins where H_J is not at least :data:`MEASURED_Z` standard
+error above zero are left out of the transfer fits (``measured``): the linearisation says
+nothing there. (Tried on the development JPEG scenes and not kept: a 3 σ mask, and the
+relative variance (se / H)² added to every bin's: each also left out the bins where a
+strong JPEG keeps a little of the scene, and lost more true resamplings and smears.)
 """
 
 from __future__ import annotations
@@ -54,8 +56,9 @@ __all__ = ["JpegTransfer", "jpeg_transfer", "DITHER_REALISATIONS"]
 
 #: noise realisations averaged when the JPEG's transfer is measured under noise
 DITHER_REALISATIONS = 2
-#: a bin's H_J is used only where it is this many standard errors above zero (below, the
-#: relative error of 1 / H_J is no longer small enough to propagate linearly)
+#: a bin's H_J is used only where it is this many standard errors above zero: an
+#: estimate under one standard error is a ratio of noises (chosen on the development
+#: JPEG scenes against 3, which left out bins that a strong JPEG measurably passes)
 MEASURED_Z = 1.0
 
 
@@ -66,10 +69,9 @@ class JpegTransfer:
 
     grid: np.ndarray
     block_px: int
-    #: standard error of ``grid``'s unclipped estimate (same bins); None: not known
-    se: np.ndarray | None = None
-    #: the unclipped estimate
-    raw: np.ndarray | None = None
+    #: bins where H_J is measured (``grid`` more than :data:`MEASURED_Z` standard errors
+    #: above zero); None: every bin
+    measured: np.ndarray | None = None
 
     def __call__(self, fy: np.ndarray, fx: np.ndarray) -> np.ndarray:
         """H_J at any frequencies (cycles/px), bilinear between the block's bins."""
@@ -79,24 +81,15 @@ class JpegTransfer:
         return ndimage.map_coordinates(self.grid, [iy.ravel(), ix.ravel()], order=1,
                                        mode="nearest").reshape(iy.shape)
 
-    def _nearest(self, fy: np.ndarray, fx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def measured_at(self, fy: np.ndarray, fx: np.ndarray) -> np.ndarray:
+        """Whether H_J was measured at frequencies ``fy``, ``fx`` (cycles/px; its nearest
+        bin): the bins a transfer fit through this linearisation may use."""
         iy = np.clip(np.rint(np.abs(fy) * self.block_px), 0, self.grid.shape[0] - 1)
         ix = np.clip(np.rint(np.abs(fx) * self.block_px), 0, self.grid.shape[1] - 1)
         iy, ix = np.broadcast_arrays(iy.astype(int), ix.astype(int))
-        return iy, ix
-
-    def relative_variance(self, fy: np.ndarray, fx: np.ndarray) -> np.ndarray:
-        """(se / H_J)² at frequencies ``fy``, ``fx`` (cycles/px; nearest bin): what the
-        linearisation adds to the relative variance of a transfer measured through it;
-        infinite where H_J is not :data:`MEASURED_Z` standard errors above zero."""
-        iy, ix = self._nearest(fy, fx)
-        if self.se is None or self.raw is None:
-            return np.zeros(iy.shape)
-        h, se = self.raw[iy, ix], self.se[iy, ix]
-        ok = h > MEASURED_Z * se
-        out = np.full(h.shape, np.inf)
-        out[ok] = (se[ok] / h[ok]) ** 2
-        return out
+        if self.measured is None:
+            return np.ones(iy.shape, bool)
+        return self.measured[iy, ix]
 
     def apply(self, img: np.ndarray) -> np.ndarray:
         """``img`` (2-D or bands first) filtered by H_J."""
@@ -112,8 +105,8 @@ def jpeg_transfer(reference: np.ndarray, compress: Callable[[np.ndarray], np.nda
     radiometry) over the Welch blocks at ``origins``.
 
     H_J = Re Σ F(J(m)) F(m)* / Σ |F(m)|² (grey, Hann-windowed blocks), averaged over the
-    four sign quadrants and clipped to [0, 1]: a coherent loss, never a gain; with its
-    standard error per bin.
+    four sign quadrants and clipped to [0, 1]: a coherent loss, never a gain; ``measured``
+    where it is more than :data:`MEASURED_Z` standard errors above zero.
 
     ``dither(m, k)``: ``m`` with noise realisation ``k`` added (and rounded as the product
     is), when the product is noisy before its JPEG; H_J is then the coherent transfer of
@@ -142,7 +135,8 @@ def jpeg_transfer(reference: np.ndarray, compress: Callable[[np.ndarray], np.nda
     var = resid / (len(origins) * den)
     quad, quad_var = _sign_quadrants(h, block_px), _sign_quadrants(var, block_px) / 2.0
     quad[0, 0], quad_var[0, 0] = 1.0, 0.0
-    return JpegTransfer(np.clip(quad, 0.0, 1.0), block_px, np.sqrt(quad_var), quad)
+    measured = quad > MEASURED_Z * np.sqrt(quad_var)
+    return JpegTransfer(np.clip(quad, 0.0, 1.0), block_px, measured)
 
 
 def _sign_quadrants(a: np.ndarray, block_px: int) -> np.ndarray:

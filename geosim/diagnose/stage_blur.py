@@ -11,7 +11,7 @@ import numpy as np
 
 from geosim.diagnose.context import FitWindow
 from geosim.diagnose.exact_family import EXACT_FAMILIES, exact_duel
-from geosim.diagnose.fit import RelativeVariance, SpectralData, build_spectral_data
+from geosim.diagnose.fit import BinFilter, SpectralData, build_spectral_data
 from geosim.diagnose.jpeg_transfer import JpegTransfer
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import BlurSelection, select_blur
@@ -45,9 +45,9 @@ class SpectralSetup:
     full: SpectralData
     folds: list[tuple[SpectralData, SpectralData]]
     n_screened: int
-    #: under JPEG, the relative variance its linearised transfer adds to the measured
-    #: transfer per bin (:meth:`~geosim.diagnose.jpeg_transfer.JpegTransfer.relative_variance`)
-    rel_var: RelativeVariance | None = None
+    #: the bins the transfer fits use (under JPEG: where its linearised transfer was
+    #: measured, :meth:`~geosim.diagnose.jpeg_transfer.JpegTransfer.measured_at`); None: all
+    keep: BinFilter | None = None
 
 
 def adopt(model: ForwardModel, sel: BlurSelection) -> ForwardModel:
@@ -124,12 +124,11 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
         raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
                              "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
                              "larger common extent")
-    rel_var = (jpeg.relative_variance if jpeg is not None and model.compression is not None
-               else None)
+    keep = jpeg.measured_at if jpeg is not None and model.compression is not None else None
 
     def spectral_data(blocks: list[tuple[int, int]]) -> SpectralData:
         return build_spectral_data(sims_grey, q_grid, inp.grey, origins=blocks,
-                                   block_px=block_px, rel_var=rel_var)
+                                   block_px=block_px, keep=keep)
 
     full = spectral_data(origins)
     groups = quadrant_folds(origins, block_px, (rows, cols))
@@ -139,8 +138,7 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
             train = [o for j, gg in enumerate(groups) if j != k for o in gg]
             folds.append((spectral_data(train), spectral_data(g)))
     return SpectralSetup(q_grid=q_grid, sims_grey=sims_grey, origins=origins, block_px=block_px,
-                         full=full, folds=folds, n_screened=len(rho) - len(origins),
-                         rel_var=rel_var)
+                         full=full, folds=folds, n_screened=len(rho) - len(origins), keep=keep)
 
 
 def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
@@ -157,5 +155,5 @@ def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
     groups = quadrant_folds(setup.origins, setup.block_px, inp.valid.shape)
     for family in EXACT_FAMILIES:
         sel = exact_duel(inp.grey, setup.sims_grey, setup.q_grid, setup.full, setup.origins,
-                         groups, setup.block_px, sel, family, inp.q_base, setup.rel_var)
+                         groups, setup.block_px, sel, family, inp.q_base, setup.keep)
     return sel
