@@ -279,6 +279,24 @@ def test_shift_measured_again_against_the_refined_model(realdata, samples_dir):
     assert np.hypot(got[0] - want[0], got[1] - want[1]) < 0.1, (got, want)
 
 
+def test_jpeg_transfer_unmeasured_bins_do_not_make_a_resampling(realdata, samples_dir):
+    """Round 18. Development c487 (SJER tile, JPEG 35 and noise at Q 3.60): the JPEG's
+    linearised transfer beyond the reference's optical cut-off was a ratio of noises
+    (≈ 0.5 where the true pass is ≈ 0), and the fit claimed a 1.70 px resampling with
+    Q 3.25 to take out the high frequencies it passed. With those bins left out it claims
+    the JPEG and the noise only; c508 (JPEG 28 alone at Q 1.52) no longer claims a
+    resampling either, and c229's true resampling under JPEG 45 (pitch 1.38 px) is still
+    found (a 3 σ mask lost it)."""
+    import diagnose_independent as bench
+
+    sources = gen.pick_sources(gen.list_sources(realdata, samples_dir))
+    for index, truth in ((487, {"compression", "sensor_noise"}), (508, {"compression"}),
+                         (229, {"compression", "resampling"})):
+        row = bench.diagnose_case(gen.make_case(index, sources))
+        assert set(row["truth"]) == truth, (index, row["truth"])
+        assert set(row["claimed"]) == truth, (index, row["claimed"])
+
+
 def test_resampling_under_jpeg_beyond_the_optics_is_withdrawn(realdata, samples_dir):
     """Development cases of benchmarks/diagnose_independent.py (made by the independent
     generator, none with resampling in its truth beside JPEG at high Q): c157 (off-nadir,
