@@ -38,7 +38,8 @@ the sign quadrants share), and bins where H_J is not at least :data:`MEASURED_Z`
 error above zero are left out of the transfer fits (``measured``): the linearisation says
 nothing there. (Tried on the development JPEG scenes and not kept: a 3 σ mask, and the
 relative variance (se / H)² added to every bin's: each also left out the bins where a
-strong JPEG keeps a little of the scene, and lost more true resamplings and smears.)
+strong JPEG keeps a little of the scene, and lost more true resamplings and smears; and
+also requiring H_J consistent with a pass ≤ 1, which changed 5 of 122 rows, for the worse.)
 """
 
 from __future__ import annotations
