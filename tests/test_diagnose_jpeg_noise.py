@@ -134,3 +134,30 @@ def test_small_noise_under_jpeg_measured_but_not_claimed(smooth):
         assert est.claimed is claimed, (sigma, est.white_var_dn2, est.whiteness)
         if claimed:
             assert abs(est.white_var_dn2 - sigma**2) < 0.3 * sigma**2, est.white_var_dn2
+
+
+def test_brightness_dependent_noise_under_jpeg(smooth):
+    """Noise whose variance grows with brightness (numpy: var = a·s + b per band, a
+    0.5 DN²/DN or 0, b 2 or 30 DN²) on the pasture spread over 14–222 DN by a ramp, then
+    Pillow's JPEG at quality 50: the censored DCT likelihood by brightness class gives a
+    variance rising with brightness for a > 0 and flat for a = 0; the gain comes out
+    within 25 % of a, and no gain where there is none."""
+    ramp = np.linspace(0.3, 1.7, smooth.shape[-1])[None, None, :]
+    scene = np.clip((smooth - smooth.mean()) * 0.5 + smooth.mean() * ramp, 5, 250)
+    mask = np.ones(scene.shape[-2:], bool)
+    org = block_origins(scene.shape[-2:], block_px=32)
+    for gain, read in ((0.5, 2.0), (0.0, 30.0)):
+        rng = np.random.default_rng(1)
+        noisy = np.rint(scene + rng.normal(0, 1, scene.shape) * np.sqrt(gain * scene + read))
+        real = _jpeg(np.clip(noisy, 0, 255), 50)
+        est = estimate_noise(real, _jpeg(scene, 50), mask, origins=org, block_px=32,
+                             quantized=True, uncompressed=scene, block_offset_px=(0, 0))
+        assert est.claimed and est.estimator == "jpeg_dct_censored"
+        assert est.brightness_dn.size == 3 and np.all(np.diff(est.brightness_dn) > 0)
+        v = est.variance_dn2
+        if gain > 0:
+            assert v[2] > 2.0 * v[0], v   # a·s + b: 36 → 91 DN², first class to last
+            assert abs(est.gain_dn - gain) < 0.25 * gain, (est.gain_dn, est.gain_sigma)
+        else:
+            assert v.max() < 1.3 * v.min(), v
+            assert est.gain_dn < 2.0 * est.gain_sigma + 0.02, (est.gain_dn, est.gain_sigma)

@@ -20,14 +20,14 @@ coefficient the variance σ², and luma noise is Σ w_b² σ_b² for independent
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import fft as sfft
 from scipy.special import ndtr
 
 __all__ = ["JpegNoiseFit", "block_dct", "block_grid", "jitter_density", "lattice_steps",
-           "lattice_evidence", "jpeg_noise_variance", "MIN_LATTICE_GAIN"]
+           "lattice_evidence", "jpeg_noise_variance", "MIN_LATTICE_GAIN", "BRIGHTNESS_CLASSES"]
 
 #: RMS jitter (DN, coefficient units) of the decoded coefficients around their lattice
 #: (integer Y conversion, integer DCT, rounding of the decoded pixels to 8 bit)
@@ -50,6 +50,10 @@ VAR_GRID_DN2 = np.concatenate([[0.0], np.geomspace(0.02, 400.0, 161)])
 #: the model lacks scales a frequency's coefficients, coherently, and is not noise (as the
 #: per-frequency transfer absorbs it in the spectral estimate)
 GAIN_GRID = np.linspace(0.6, 1.4, 17)
+#: classes of block brightness for the noise's brightness dependence (var = a·s + b),
+#: each of at least :data:`MIN_CLASS_BLOCKS` blocks
+BRIGHTNESS_CLASSES = 3
+MIN_CLASS_BLOCKS = 8
 
 
 @dataclass
@@ -71,6 +75,13 @@ class JpegNoiseFit:
     n_blocks: int
     offset_px: tuple[int, int] = (0, 0)
     delta_bic: float = 0.0
+    #: the blocks in :data:`BRIGHTNESS_CLASSES` classes of the model's brightness: their
+    #: mean luma (DN), the maximum-likelihood luma noise variance of each class and its
+    #: standard error (DN², from where the profile log-likelihood falls by ½); empty where
+    #: too few blocks
+    class_brightness_dn: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    class_var_dn2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    class_var_sigma_dn2: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def block_dct(grey: np.ndarray, offset_px: tuple[int, int], mask: np.ndarray | None = None
@@ -182,6 +193,41 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
     steps = lattice_steps(cr)
     steps[0] = 0.0                      # DC: the level shift and the radiometry misfit
     steps[steps >= MAX_STEP] = 0.0
+    if not np.any(steps > 1):
+        return empty
+    ll_low, ll_high = _profiles(cr, cm, steps)
+    ll = ll_low + ll_high
+    best = VAR_GRID_DN2[int(np.argmax(ll))]
+    n_values = int(np.sum(steps > 1)) * int(cr.shape[0])
+    dbic = float(2.0 * (np.max(ll) - ll[0]) - np.log(max(n_values, 2)))
+    u, v = np.divmod(np.arange(64), 8)
+    low = (u + v) <= 2
+    v_low = VAR_GRID_DN2[int(np.argmax(ll_low))] if np.any(steps[low] > 1) else best
+    v_high = VAR_GRID_DN2[int(np.argmax(ll_high))] if np.any(steps[~low] > 1) else best
+    # the brightness dependence: the same likelihood on classes of block brightness (the
+    # model's block mean: the orthonormal DC is 8 × the mean)
+    brightness = cm[:, 0] / 8.0
+    order = np.argsort(brightness, kind="stable")
+    classes = [c for c in np.array_split(order, BRIGHTNESS_CLASSES)
+               if c.size >= MIN_CLASS_BLOCKS]
+    c_s, c_v, c_sig = [], [], []
+    if len(classes) >= 2:
+        for c in classes:
+            lc = sum(_profiles(cr[c], cm[c], steps))
+            c_s.append(float(np.mean(brightness[c])))
+            c_v.append(float(VAR_GRID_DN2[int(np.argmax(lc))]))
+            c_sig.append(_half_width(lc))
+    return JpegNoiseFit(float(best), float(v_low), float(v_high),
+                        np.where(steps > 1, steps, 0.0).reshape(8, 8), int(cr.shape[0]),
+                        offset_px, dbic, np.array(c_s), np.array(c_v), np.array(c_sig))
+
+
+def _profiles(cr: np.ndarray, cm: np.ndarray, steps: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Log-likelihood over :data:`VAR_GRID_DN2` of the blocks' real coefficients ``cr``
+    (n, 64) given the model's ``cm``, summed over the quantised coefficients (``steps`` > 1;
+    each with its own gain, profiled out), split into the low-frequency (u + v ≤ 2) and
+    the other coefficients."""
     u, v = np.divmod(np.arange(64), 8)
     low = (u + v) <= 2
     ll_low = np.zeros(VAR_GRID_DN2.size)
@@ -196,14 +242,13 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
             ll_low += ll
         else:
             ll_high += ll
-    if not np.any(steps > 1):
-        return empty
-    ll = ll_low + ll_high
-    best = VAR_GRID_DN2[int(np.argmax(ll))]
-    n_values = int(np.sum(steps > 1)) * int(cr.shape[0])
-    dbic = float(2.0 * (np.max(ll) - ll[0]) - np.log(max(n_values, 2)))
-    v_low = VAR_GRID_DN2[int(np.argmax(ll_low))] if np.any(steps[low] > 1) else best
-    v_high = VAR_GRID_DN2[int(np.argmax(ll_high))] if np.any(steps[~low] > 1) else best
-    return JpegNoiseFit(float(best), float(v_low), float(v_high),
-                        np.where(steps > 1, steps, 0.0).reshape(8, 8), int(cr.shape[0]),
-                        offset_px, dbic)
+    return ll_low, ll_high
+
+
+def _half_width(ll: np.ndarray) -> float:
+    """Half the width (DN²) of the variances whose log-likelihood is within ½ of the
+    maximum (the standard error of a smooth profile); at least one grid step."""
+    inside = VAR_GRID_DN2[ll >= np.max(ll) - 0.5]
+    i = int(np.argmax(ll))
+    step = float(np.diff(VAR_GRID_DN2)[min(i, VAR_GRID_DN2.size - 2)])
+    return max(float(inside.max() - inside.min()) / 2.0, step)

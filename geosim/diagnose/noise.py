@@ -29,7 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from geosim.diagnose.fit import HANN_CORRELATION, fit_noise
-from geosim.diagnose.jpeg_noise import jpeg_noise_variance
+from geosim.diagnose.jpeg_noise import JpegNoiseFit, jpeg_noise_variance
 from geosim.diagnose.model import NoiseEstimate
 from geosim.diagnose.spectra import hann2d
 from geosim.physics.radiometry import LUMA_WEIGHTS, add_sensor_noise, luma
@@ -197,9 +197,44 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
         gs, rs = nf.gain_sigma * k, nf.read_sigma * k
     else:
         gain, read, gs, rs = 0.0, white, float("inf"), float("inf")
+    brightness_dn, variance_dn2 = nf.brightness_dn, nf.variance_dn2
+    by_class = None if jf is None else jpeg_brightness_line(jf, white, w2)
+    if by_class is not None:
+        # under JPEG the high-passed residual is the JPEG's error, not the noise: the
+        # brightness dependence comes from the censored DCT likelihood by brightness class
+        gain, read, gs, rs = by_class
+        brightness_dn = jf.class_brightness_dn
+        variance_dn2 = np.maximum(jf.class_var_dn2 / w2 - qv, 0.0)
     return NoiseEstimate(gain_dn=float(gain), read_var_dn2=float(read), gain_sigma=float(gs),
                          read_sigma=float(rs), white_var_dn2=white, whiteness=float(whiteness),
                          claimed=claimed, quantization_dn2=qv,
-                         brightness_dn=nf.brightness_dn, variance_dn2=nf.variance_dn2,
+                         brightness_dn=brightness_dn, variance_dn2=variance_dn2,
                          mean_variance_sigma=nf.mean_variance_sigma, delta_bic=dbic,
                          estimator="spectral_floor" if jf is None else "jpeg_dct_censored")
+
+
+def jpeg_brightness_line(jf: JpegNoiseFit, white: float, w2: float
+                         ) -> tuple[float, float, float, float] | None:
+    """Per-band noise a·s + b under JPEG from the censored DCT likelihood's brightness
+    classes (:attr:`JpegNoiseFit.class_var_dn2`): gain a (DN² per DN), read variance b
+    (DN²) and their standard errors.
+
+    The classes' luma variances are fitted by a line in their brightness (weighted by
+    their standard errors); the line is anchored at the all-block estimate ``white``
+    (per band, DN², at the blocks' mean brightness) so that the claimed level does not
+    move, and kept physical (a ≥ 0, b ≥ 0). Luma noise of bands with variance a·s + b and
+    similar brightness is Σ w_b² (a s + b) = ``w2`` (a s + b). None where fewer than two
+    classes, no spread of brightness or no noise."""
+    s, v, sig = jf.class_brightness_dn, jf.class_var_dn2, jf.class_var_sigma_dn2
+    if s.size < 2 or float(np.ptp(s)) <= 0 or white <= 0 or float(np.mean(s)) <= 0:
+        return None
+    a_mat = np.column_stack([s, np.ones_like(s)])
+    wt = 1.0 / np.maximum(sig, 1e-6) ** 2
+    cov = np.linalg.inv(a_mat.T @ (a_mat * wt[:, None]))
+    slope = float((cov @ (a_mat.T @ (wt * v)))[0])
+    s_mean = float(np.mean(s))
+    gain = max(slope, 0.0) / w2
+    read = white - gain * s_mean
+    if read < 0.0:
+        gain, read = white / s_mean, 0.0
+    return gain, read, float(np.sqrt(cov[0, 0])) / w2, float(np.sqrt(cov[1, 1])) / w2
