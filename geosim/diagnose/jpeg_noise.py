@@ -82,6 +82,10 @@ class JpegNoiseFit:
     class_brightness_dn: np.ndarray = field(default_factory=lambda: np.zeros(0))
     class_var_dn2: np.ndarray = field(default_factory=lambda: np.zeros(0))
     class_var_sigma_dn2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: the luma noise line var = slope · s + intercept (DN² per DN, DN²) of maximum joint
+    #: likelihood over the classes (both ≥ 0) and their standard errors (where the
+    #: profile log-likelihood falls by ½); None without classes
+    line: tuple[float, float, float, float] | None = None
 
 
 def block_dct(grey: np.ndarray, offset_px: tuple[int, int], mask: np.ndarray | None = None
@@ -210,16 +214,42 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
     order = np.argsort(brightness, kind="stable")
     classes = [c for c in np.array_split(order, BRIGHTNESS_CLASSES)
                if c.size >= MIN_CLASS_BLOCKS]
-    c_s, c_v, c_sig = [], [], []
+    c_s, c_v, c_sig, c_ll = [], [], [], []
     if len(classes) >= 2:
         for c in classes:
             lc = sum(_profiles(cr[c], cm[c], steps))
             c_s.append(float(np.mean(brightness[c])))
             c_v.append(float(VAR_GRID_DN2[int(np.argmax(lc))]))
             c_sig.append(_half_width(lc))
+            c_ll.append(lc)
+    line = _noise_line(np.array(c_s), c_ll) if len(c_s) >= 2 else None
     return JpegNoiseFit(float(best), float(v_low), float(v_high),
                         np.where(steps > 1, steps, 0.0).reshape(8, 8), int(cr.shape[0]),
-                        offset_px, dbic, np.array(c_s), np.array(c_v), np.array(c_sig))
+                        offset_px, dbic, np.array(c_s), np.array(c_v), np.array(c_sig), line)
+
+
+#: slopes (luma DN² per DN) and intercepts (luma DN²) searched for the noise line
+SLOPE_GRID = np.linspace(0.0, 2.0, 201)
+INTERCEPT_GRID = np.concatenate([[0.0], np.geomspace(0.02, 400.0, 161)])
+
+
+def _noise_line(brightness: np.ndarray, class_ll: list[np.ndarray]
+                ) -> tuple[float, float, float, float] | None:
+    """The line var = slope · s + intercept (luma, both ≥ 0) that maximises the summed
+    class log-likelihoods (each a profile over :data:`VAR_GRID_DN2`, interpolated at the
+    line's variance for the class's brightness ``s``), with the half-widths of the
+    profile log-likelihood within ½ of the maximum as standard errors."""
+    if float(np.ptp(brightness)) <= 0:
+        return None
+    var = SLOPE_GRID[:, None, None] * brightness[None, None, :] + INTERCEPT_GRID[None, :, None]
+    total = sum(np.interp(var[..., k], VAR_GRID_DN2, ll, right=-np.inf)
+                for k, ll in enumerate(class_ll))
+    i, j = np.unravel_index(int(np.argmax(total)), total.shape)
+    near = total >= total[i, j] - 0.5
+    slopes, intercepts = SLOPE_GRID[near.any(axis=1)], INTERCEPT_GRID[near.any(axis=0)]
+    return (float(SLOPE_GRID[i]), float(INTERCEPT_GRID[j]),
+            max(float(np.ptp(slopes)) / 2.0, float(SLOPE_GRID[1])),
+            max(float(np.ptp(intercepts)) / 2.0, float(INTERCEPT_GRID[1])))
 
 
 def _profiles(cr: np.ndarray, cm: np.ndarray, steps: np.ndarray

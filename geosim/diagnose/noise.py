@@ -198,7 +198,7 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
     else:
         gain, read, gs, rs = 0.0, white, float("inf"), float("inf")
     brightness_dn, variance_dn2 = nf.brightness_dn, nf.variance_dn2
-    by_class = None if jf is None else jpeg_brightness_line(jf, white, w2)
+    by_class = None if jf is None else jpeg_brightness_line(jf, w2, qv)
     if by_class is not None:
         # under JPEG the high-passed residual is the JPEG's error, not the noise: the
         # brightness dependence comes from the censored DCT likelihood by brightness class
@@ -213,28 +213,14 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
                          estimator="spectral_floor" if jf is None else "jpeg_dct_censored")
 
 
-def jpeg_brightness_line(jf: JpegNoiseFit, white: float, w2: float
+def jpeg_brightness_line(jf: JpegNoiseFit, w2: float, qv: float
                          ) -> tuple[float, float, float, float] | None:
-    """Per-band noise a·s + b under JPEG from the censored DCT likelihood's brightness
-    classes (:attr:`JpegNoiseFit.class_var_dn2`): gain a (DN² per DN), read variance b
-    (DN²) and their standard errors.
-
-    The classes' luma variances are fitted by a line in their brightness (weighted by
-    their standard errors); the line is anchored at the all-block estimate ``white``
-    (per band, DN², at the blocks' mean brightness) so that the claimed level does not
-    move, and kept physical (a ≥ 0, b ≥ 0). Luma noise of bands with variance a·s + b and
-    similar brightness is Σ w_b² (a s + b) = ``w2`` (a s + b). None where fewer than two
-    classes, no spread of brightness or no noise."""
-    s, v, sig = jf.class_brightness_dn, jf.class_var_dn2, jf.class_var_sigma_dn2
-    if s.size < 2 or float(np.ptp(s)) <= 0 or white <= 0 or float(np.mean(s)) <= 0:
+    """Per-band noise a·s + b under JPEG from the censored DCT likelihood's line over the
+    blocks' brightness classes (:attr:`JpegNoiseFit.line`, luma): gain a (DN² per DN),
+    read variance b (DN², rounding ``qv`` removed) and their standard errors. Luma noise
+    of bands with variance a·s + b and similar brightness is Σ w_b² (a s + b) =
+    ``w2`` (a s + b). None without the line."""
+    if jf.line is None:
         return None
-    a_mat = np.column_stack([s, np.ones_like(s)])
-    wt = 1.0 / np.maximum(sig, 1e-6) ** 2
-    cov = np.linalg.inv(a_mat.T @ (a_mat * wt[:, None]))
-    slope = float((cov @ (a_mat.T @ (wt * v)))[0])
-    s_mean = float(np.mean(s))
-    gain = max(slope, 0.0) / w2
-    read = white - gain * s_mean
-    if read < 0.0:
-        gain, read = white / s_mean, 0.0
-    return gain, read, float(np.sqrt(cov[0, 0])) / w2, float(np.sqrt(cov[1, 1])) / w2
+    slope, intercept, slope_se, intercept_se = jf.line
+    return (slope / w2, max(intercept / w2 - qv, 0.0), slope_se / w2, intercept_se / w2)
