@@ -27,7 +27,8 @@ from scipy import fft as sfft
 from scipy.special import ndtr
 
 __all__ = ["JpegNoiseFit", "block_dct", "block_grid", "jitter_density", "lattice_steps",
-           "lattice_evidence", "jpeg_noise_variance", "MIN_LATTICE_GAIN", "BRIGHTNESS_CLASSES"]
+           "lattice_evidence", "jpeg_noise_variance", "MIN_LATTICE_GAIN", "BRIGHTNESS_CLASSES",
+           "NoiseLine"]
 
 #: RMS jitter (DN, coefficient units) of the decoded coefficients around their lattice
 #: (integer Y conversion, integer DCT, rounding of the decoded pixels to 8 bit)
@@ -56,6 +57,18 @@ BRIGHTNESS_CLASSES = 3
 MIN_CLASS_BLOCKS = 8
 
 
+@dataclass(frozen=True)
+class NoiseLine:
+    """Noise variance ``gain_dn`` · s + ``read_var_dn2`` (DN² per DN of brightness s, DN²;
+    both ≥ 0) and their standard errors (half-widths of the profile log-likelihood
+    within ½ of its maximum)."""
+
+    gain_dn: float
+    read_var_dn2: float
+    gain_sigma: float
+    read_sigma: float
+
+
 @dataclass
 class JpegNoiseFit:
     """Luma noise variance from the censored DCT coefficients.
@@ -76,16 +89,12 @@ class JpegNoiseFit:
     offset_px: tuple[int, int] = (0, 0)
     delta_bic: float = 0.0
     #: the blocks in :data:`BRIGHTNESS_CLASSES` classes of the model's brightness: their
-    #: mean luma (DN), the maximum-likelihood luma noise variance of each class and its
-    #: standard error (DN², from where the profile log-likelihood falls by ½); empty where
-    #: too few blocks
+    #: mean luma (DN) and the maximum-likelihood luma noise variance of each class (DN²);
+    #: empty where too few blocks
     class_brightness_dn: np.ndarray = field(default_factory=lambda: np.zeros(0))
     class_var_dn2: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    class_var_sigma_dn2: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    #: the luma noise line var = slope · s + intercept (DN² per DN, DN²) of maximum joint
-    #: likelihood over the classes (both ≥ 0) and their standard errors (where the
-    #: profile log-likelihood falls by ½); None without classes
-    line: tuple[float, float, float, float] | None = None
+    #: the luma noise line of maximum joint likelihood over the classes; None without them
+    line: NoiseLine | None = None
 
 
 def block_dct(grey: np.ndarray, offset_px: tuple[int, int], mask: np.ndarray | None = None
@@ -214,18 +223,16 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
     order = np.argsort(brightness, kind="stable")
     classes = [c for c in np.array_split(order, BRIGHTNESS_CLASSES)
                if c.size >= MIN_CLASS_BLOCKS]
-    c_s, c_v, c_sig, c_ll = [], [], [], []
+    c_s, c_ll = [], []
     if len(classes) >= 2:
         for c in classes:
-            lc = sum(_profiles(cr[c], cm[c], steps))
             c_s.append(float(np.mean(brightness[c])))
-            c_v.append(float(VAR_GRID_DN2[int(np.argmax(lc))]))
-            c_sig.append(_half_width(lc))
-            c_ll.append(lc)
+            c_ll.append(sum(_profiles(cr[c], cm[c], steps)))
+    c_v = [float(VAR_GRID_DN2[int(np.argmax(lc))]) for lc in c_ll]
     line = _noise_line(np.array(c_s), c_ll) if len(c_s) >= 2 else None
     return JpegNoiseFit(float(best), float(v_low), float(v_high),
                         np.where(steps > 1, steps, 0.0).reshape(8, 8), int(cr.shape[0]),
-                        offset_px, dbic, np.array(c_s), np.array(c_v), np.array(c_sig), line)
+                        offset_px, dbic, np.array(c_s), np.array(c_v), line)
 
 
 #: slopes (luma DN² per DN) and intercepts (luma DN²) searched for the noise line
@@ -233,8 +240,7 @@ SLOPE_GRID = np.linspace(0.0, 2.0, 201)
 INTERCEPT_GRID = np.concatenate([[0.0], np.geomspace(0.02, 400.0, 161)])
 
 
-def _noise_line(brightness: np.ndarray, class_ll: list[np.ndarray]
-                ) -> tuple[float, float, float, float] | None:
+def _noise_line(brightness: np.ndarray, class_ll: list[np.ndarray]) -> NoiseLine | None:
     """The line var = slope · s + intercept (luma, both ≥ 0) that maximises the summed
     class log-likelihoods (each a profile over :data:`VAR_GRID_DN2`, interpolated at the
     line's variance for the class's brightness ``s``), with the half-widths of the
@@ -247,9 +253,9 @@ def _noise_line(brightness: np.ndarray, class_ll: list[np.ndarray]
     i, j = np.unravel_index(int(np.argmax(total)), total.shape)
     near = total >= total[i, j] - 0.5
     slopes, intercepts = SLOPE_GRID[near.any(axis=1)], INTERCEPT_GRID[near.any(axis=0)]
-    return (float(SLOPE_GRID[i]), float(INTERCEPT_GRID[j]),
-            max(float(np.ptp(slopes)) / 2.0, float(SLOPE_GRID[1])),
-            max(float(np.ptp(intercepts)) / 2.0, float(INTERCEPT_GRID[1])))
+    return NoiseLine(float(SLOPE_GRID[i]), float(INTERCEPT_GRID[j]),
+                     max(float(np.ptp(slopes)) / 2.0, float(SLOPE_GRID[1])),
+                     max(float(np.ptp(intercepts)) / 2.0, float(INTERCEPT_GRID[1])))
 
 
 def _profiles(cr: np.ndarray, cm: np.ndarray, steps: np.ndarray
@@ -274,11 +280,3 @@ def _profiles(cr: np.ndarray, cm: np.ndarray, steps: np.ndarray
             ll_high += ll
     return ll_low, ll_high
 
-
-def _half_width(ll: np.ndarray) -> float:
-    """Half the width (DN²) of the variances whose log-likelihood is within ½ of the
-    maximum (the standard error of a smooth profile); at least one grid step."""
-    inside = VAR_GRID_DN2[ll >= np.max(ll) - 0.5]
-    i = int(np.argmax(ll))
-    step = float(np.diff(VAR_GRID_DN2)[min(i, VAR_GRID_DN2.size - 2)])
-    return max(float(inside.max() - inside.min()) / 2.0, step)

@@ -29,7 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from geosim.diagnose.fit import HANN_CORRELATION, fit_noise
-from geosim.diagnose.jpeg_noise import JpegNoiseFit, jpeg_noise_variance
+from geosim.diagnose.jpeg_noise import JpegNoiseFit, NoiseLine, jpeg_noise_variance
 from geosim.diagnose.model import NoiseEstimate
 from geosim.diagnose.spectra import hann2d
 from geosim.physics.radiometry import LUMA_WEIGHTS, add_sensor_noise, luma
@@ -202,7 +202,8 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
     if by_class is not None:
         # under JPEG the high-passed residual is the JPEG's error, not the noise: the
         # brightness dependence comes from the censored DCT likelihood by brightness class
-        gain, read, gs, rs = by_class
+        gain, read, gs, rs = (by_class.gain_dn, by_class.read_var_dn2, by_class.gain_sigma,
+                              by_class.read_sigma)
         brightness_dn = jf.class_brightness_dn
         variance_dn2 = np.maximum(jf.class_var_dn2 / w2 - qv, 0.0)
     return NoiseEstimate(gain_dn=float(gain), read_var_dn2=float(read), gain_sigma=float(gs),
@@ -213,14 +214,13 @@ def estimate_noise(real: np.ndarray, model: np.ndarray, mask: np.ndarray, *,
                          estimator="spectral_floor" if jf is None else "jpeg_dct_censored")
 
 
-def jpeg_brightness_line(jf: JpegNoiseFit, w2: float, qv: float
-                         ) -> tuple[float, float, float, float] | None:
+def jpeg_brightness_line(jf: JpegNoiseFit, w2: float, qv: float) -> NoiseLine | None:
     """Per-band noise a·s + b under JPEG from the censored DCT likelihood's line over the
-    blocks' brightness classes (:attr:`JpegNoiseFit.line`, luma): gain a (DN² per DN),
-    read variance b (DN², rounding ``qv`` removed) and their standard errors. Luma noise
-    of bands with variance a·s + b and similar brightness is Σ w_b² (a s + b) =
-    ``w2`` (a s + b). None without the line."""
-    if jf.line is None:
+    blocks' brightness classes (:attr:`JpegNoiseFit.line`, luma), the rounding ``qv``
+    removed from b. Luma noise of bands with variance a·s + b and similar brightness is
+    Σ w_b² (a s + b) = ``w2`` (a s + b). None without the line."""
+    line = jf.line
+    if line is None:
         return None
-    slope, intercept, slope_se, intercept_se = jf.line
-    return (slope / w2, max(intercept / w2 - qv, 0.0), slope_se / w2, intercept_se / w2)
+    return NoiseLine(line.gain_dn / w2, max(line.read_var_dn2 / w2 - qv, 0.0),
+                     line.gain_sigma / w2, line.read_sigma / w2)
