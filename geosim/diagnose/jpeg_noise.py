@@ -55,6 +55,9 @@ GAIN_GRID = np.linspace(0.6, 1.4, 17)
 #: each of at least :data:`MIN_CLASS_BLOCKS` blocks
 BRIGHTNESS_CLASSES = 3
 MIN_CLASS_BLOCKS = 8
+#: the low-frequency DCT coefficients (u + v ≤ 2) of the 64, row-major: their noise
+#: estimate against the others' is the whiteness test
+LOW_FREQUENCY = np.add(*np.divmod(np.arange(64), 8)) <= 2
 
 
 @dataclass(frozen=True)
@@ -213,10 +216,10 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
     best = VAR_GRID_DN2[int(np.argmax(ll))]
     n_values = int(np.sum(steps > 1)) * int(cr.shape[0])
     dbic = float(2.0 * (np.max(ll) - ll[0]) - np.log(max(n_values, 2)))
-    u, v = np.divmod(np.arange(64), 8)
-    low = (u + v) <= 2
-    v_low = VAR_GRID_DN2[int(np.argmax(ll_low))] if np.any(steps[low] > 1) else best
-    v_high = VAR_GRID_DN2[int(np.argmax(ll_high))] if np.any(steps[~low] > 1) else best
+    v_low = (VAR_GRID_DN2[int(np.argmax(ll_low))] if np.any(steps[LOW_FREQUENCY] > 1)
+             else best)
+    v_high = (VAR_GRID_DN2[int(np.argmax(ll_high))] if np.any(steps[~LOW_FREQUENCY] > 1)
+              else best)
     # the brightness dependence: the same likelihood on classes of block brightness (the
     # model's block mean: the orthonormal DC is 8 × the mean)
     brightness = cm[:, 0] / 8.0
@@ -235,9 +238,9 @@ def jpeg_noise_variance(real_grey: np.ndarray, model_grey: np.ndarray,
                         offset_px, dbic, np.array(c_s), np.array(c_v), line)
 
 
-#: slopes (luma DN² per DN) and intercepts (luma DN²) searched for the noise line
+#: slopes (luma DN² per DN) searched for the noise line; its intercepts (luma DN²) are
+#: searched over :data:`VAR_GRID_DN2`
 SLOPE_GRID = np.linspace(0.0, 2.0, 201)
-INTERCEPT_GRID = np.concatenate([[0.0], np.geomspace(0.02, 400.0, 161)])
 
 
 def _noise_line(brightness: np.ndarray, class_ll: list[np.ndarray]) -> NoiseLine | None:
@@ -247,15 +250,15 @@ def _noise_line(brightness: np.ndarray, class_ll: list[np.ndarray]) -> NoiseLine
     profile log-likelihood within ½ of the maximum as standard errors."""
     if float(np.ptp(brightness)) <= 0:
         return None
-    var = SLOPE_GRID[:, None, None] * brightness[None, None, :] + INTERCEPT_GRID[None, :, None]
+    var = SLOPE_GRID[:, None, None] * brightness[None, None, :] + VAR_GRID_DN2[None, :, None]
     total = sum(np.interp(var[..., k], VAR_GRID_DN2, ll, right=-np.inf)
                 for k, ll in enumerate(class_ll))
     i, j = np.unravel_index(int(np.argmax(total)), total.shape)
     near = total >= total[i, j] - 0.5
-    slopes, intercepts = SLOPE_GRID[near.any(axis=1)], INTERCEPT_GRID[near.any(axis=0)]
-    return NoiseLine(float(SLOPE_GRID[i]), float(INTERCEPT_GRID[j]),
+    slopes, intercepts = SLOPE_GRID[near.any(axis=1)], VAR_GRID_DN2[near.any(axis=0)]
+    return NoiseLine(float(SLOPE_GRID[i]), float(VAR_GRID_DN2[j]),
                      max(float(np.ptp(slopes)) / 2.0, float(SLOPE_GRID[1])),
-                     max(float(np.ptp(intercepts)) / 2.0, float(INTERCEPT_GRID[1])))
+                     max(float(np.ptp(intercepts)) / 2.0, float(VAR_GRID_DN2[1])))
 
 
 def _profiles(cr: np.ndarray, cm: np.ndarray, steps: np.ndarray
@@ -264,8 +267,6 @@ def _profiles(cr: np.ndarray, cm: np.ndarray, steps: np.ndarray
     (n, 64) given the model's ``cm``, summed over the quantised coefficients (``steps`` > 1;
     each with its own gain, profiled out), split into the low-frequency (u + v ≤ 2) and
     the other coefficients."""
-    u, v = np.divmod(np.arange(64), 8)
-    low = (u + v) <= 2
     ll_low = np.zeros(VAR_GRID_DN2.size)
     ll_high = np.zeros(VAR_GRID_DN2.size)
     for k in np.flatnonzero(steps > 1):  # a step of 1 is no quantisation: not censored
@@ -274,7 +275,7 @@ def _profiles(cr: np.ndarray, cm: np.ndarray, steps: np.ndarray
         spread = 6.0 * float(np.std(cr[:, k]))
         ll = np.max([_censored_loglik(j, g * cm[:, k], q, spread, VAR_GRID_DN2).sum(axis=1)
                      for g in GAIN_GRID], axis=0)
-        if low[k]:
+        if LOW_FREQUENCY[k]:
             ll_low += ll
         else:
             ll_high += ll

@@ -101,7 +101,9 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
     q_lo, q_hi = window.q_lo, window.q_hi
     n_q = int(np.ceil(np.log(q_hi / q_lo) / np.log(Q_GRID_STEP))) + 1
     q_grid = np.exp(np.linspace(np.log(q_lo), np.log(q_hi), n_q))
-    if jpeg is not None and model.compression is not None:
+    if jpeg is not None and model.compression is None:
+        jpeg = None  # nothing compressed: the simulations are used as they are
+    if jpeg is not None:
         sims_grey = [jpeg.apply(grey(model.sim_at(inp.simulate, q, compressed=False)))
                      for q in q_grid]
     else:
@@ -124,7 +126,7 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
         raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
                              "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
                              "larger common extent")
-    keep = jpeg.measured_at if jpeg is not None and model.compression is not None else None
+    keep = jpeg.measured_at if jpeg is not None else None
 
     def spectral_data(blocks: list[tuple[int, int]]) -> SpectralData:
         return build_spectral_data(sims_grey, q_grid, inp.grey, origins=blocks,
