@@ -166,7 +166,13 @@ def _blur(name: str) -> BlurEffect:
 def model_transfer(data: SpectralData, *, q: float, gain: float,
                    effects: dict[str, dict[str, float]]) -> np.ndarray:
     """g · ∏ H_e(f) · G(q)(f) on the samples of ``data``."""
-    h = gain * data.g_at(q)
+    return gain * data.g_at(q) * _effects_transfer(data, effects)
+
+
+def _effects_transfer(data: SpectralData, effects: dict[str, dict[str, float]]
+                      ) -> np.ndarray | float:
+    """∏ H_e(f) of ``effects`` on the samples of ``data`` (1.0 for none)."""
+    h: np.ndarray | float = 1.0
     for name, p in effects.items():
         h = h * _blur(name).transfer(data.fy, data.fx, **p)
     return h
@@ -219,9 +225,13 @@ def _unpack(x: np.ndarray, specs) -> tuple[float, float, dict[str, dict[str, flo
     return q, gain, eff
 
 
-def _residual(x, data: SpectralData, specs, wt: np.ndarray) -> np.ndarray:
+def _residual(x, data: SpectralData, specs, wt: np.ndarray,
+              fixed: np.ndarray | float | None = None) -> np.ndarray:
     q, gain, eff = _unpack(x, specs)
-    d = (data.t_real - model_transfer(data, q=q, gain=gain, effects=eff)) * wt
+    h = model_transfer(data, q=q, gain=gain, effects=eff)
+    if fixed is not None:
+        h = h * fixed
+    d = (data.t_real - h) * wt
     return np.concatenate([d.real, d.imag])
 
 
@@ -234,7 +244,8 @@ def evaluate_chi2(data: SpectralData, *, q: float, gain: float,
 
 def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
                  q_starts: Sequence[float] = (1.5,), fix_q: float | None = None,
-                 max_starts: int = 24, start: TransferFit | None = None) -> TransferFit:
+                 max_starts: int = 24, start: TransferFit | None = None,
+                 fixed: dict[str, dict[str, float]] | None = None) -> TransferFit:
     """Least-squares fit of g, Q and the parameters of ``effect_names`` to ``data``.
 
     Multi-start over the catalogue's initial values (all directions) and ``q_starts``;
@@ -248,7 +259,14 @@ def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
     start
         A fit of the same effects (e.g. on all blocks) to start from, alone: a single
         start, for the many refits of block cross-validation.
+    fixed
+        Effects in the model with their parameters held (e.g. measured on the power
+        spectrum, which the transfer cannot see): they multiply the transfer, are not
+        fitted, and appear in the result's ``effects`` (not in ``sigmas`` nor
+        ``n_params``).
     """
+    fixed = {n: dict(p) for n, p in (fixed or {}).items() if n not in effect_names}
+    h_fixed = _effects_transfer(data, fixed) if fixed else None
     specs = _pack_specs(effect_names)
     qlo, qhi = float(data.q_grid[0]), float(data.q_grid[-1])
     lb = [np.log(qlo), 0.05] + [s[2] for s in specs]
@@ -270,7 +288,7 @@ def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
                        np.clip(gain0, 0.06, 4.9)] + list(st[1:]), dtype=float)
         x0 = np.clip(x0, np.array(lb) + 1e-9, np.array(ub) - 1e-9)
         try:
-            res = least_squares(_residual, x0, bounds=(lb, ub), args=(data, specs, wt),
+            res = least_squares(_residual, x0, bounds=(lb, ub), args=(data, specs, wt, h_fixed),
                                 method="trf", x_scale="jac", max_nfev=200)
         except ValueError:
             continue
@@ -297,8 +315,8 @@ def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
         sigmas.setdefault(name, {})[pname] = float(s)  # type: ignore[union-attr]
         if periodic:
             eff[name][pname] = float(np.mod(eff[name][pname], periodic))
-    return TransferFit(effects=eff, sigmas=sigmas, q=q, gain=gain, chi2=chi2, n_params=k,
-                       n_eff=data.n_eff)
+    return TransferFit(effects={**eff, **fixed}, sigmas=sigmas, q=q, gain=gain, chi2=chi2,
+                       n_params=k, n_eff=data.n_eff)
 
 
 # ----------------------------------------------------------------------------- radiometry

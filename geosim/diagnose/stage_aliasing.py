@@ -27,7 +27,8 @@ from geosim.diagnose.stage_noise import realisations
 from geosim.diagnose.stage_withdraw import native_nyquist_floor_px
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
-__all__ = ["aliasing_test", "split_halves", "resampling_detection_limit",
+__all__ = ["aliasing_test", "split_halves", "resampling_detection_limit", "with_resampling",
+           "others_fit",
            "ALIASING_SPECTRAL_GAIN", "ALIASING_SPECTRAL_GAIN_SPLIT"]
 
 #: resampling not chosen by the transfer fit is still claimed when its aliasing, which the
@@ -66,7 +67,9 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
        lies), its native pitch and kernel (OpenCV's a = −0.75 or Keys' −0.5) are fitted on
        the power spectrum itself, by split halves: the pair chosen on the left half of the
        blocks must improve the right half's spectral error by the same margin, and vice
-       versa.
+       versa. Each scanned pair is rendered with Q and the other blurs refitted on the
+       transfer with that resampling held (:func:`with_resampling`): Q had taken up the
+       resampling's roll-off, and the two added at the Q fitted without it blur twice.
     3. A pitch the transfer gave (route 1, or forward selection) is moved to the scanned
        pitch of lowest spectral error (:func:`_pitch_on_spectrum`; not under JPEG).
 
@@ -126,9 +129,10 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
 
     # rendered pitch by pitch: the simulator keeps a pitch's native sampling for the next
     # kernel (same images as in the scan's order)
-    rendered = {(float(a), float(p)): delivered(model.without(blur={**model.blur,
-                                                                    name: at(float(a), float(p))}))
-                for p in pitches for a in (OPENCV_A, KEYS_A)}
+    start = others_fit(setup, model)
+    fitted = {(float(a), float(p)): with_resampling(setup, model, at(float(a), float(p)), start)
+              for p in pitches for a in (OPENCV_A, KEYS_A)}
+    rendered = {g: delivered(m) for g, (m, _) in fitted.items()}
     imgs = [rendered[g] for g in grid]
     none = delivered(model)
     se_h = np.array([[se_on(im, h) for h in halves] for im in imgs])   # (kernel·pitch, half)
@@ -145,19 +149,42 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
         # not have (as a fitted parameter at a bound, never claimed by name; development:
         # 1.15 px where the truth was atmosphere at Q 4)
         return model
-    eff = {**model.blur, name: at(*grid[j])}
-    fit_p = fit_transfer(setup.full, names, fix_q=model.q, q_starts=(model.q,))
-    # the transfer's view (reported): the model with the spectrally fitted pitch
-    chi2 = evaluate_chi2(setup.full, q=model.q, gain=fit_p.gain, effects=eff)
-    # the scan's steps: 0.05 px in pitch; the kernel is one of two (0.25 apart)
+    chosen, fit_p = fitted[grid[j]]
+    # the transfer's view (reported): Q and the other blurs refitted with the spectrally
+    # fitted resampling held; its uncertainty the scan's steps: 0.05 px in pitch, the
+    # kernel one of two (0.25 apart)
     sigmas = {**fit_p.sigmas, name: {"native_pitch_px": PITCH_STEP, "cubic_a": 0.25}}
-    step_fit = replace(fit_p, effects=eff, chi2=chi2, q=model.q, sigmas=sigmas)
+    step_fit = replace(fit_p, sigmas=sigmas, n_params=fit_p.n_params + 2)
     # heldout_gain here: the held-out drop of the spectral error (the weaker half)
     sel.steps.append(AcceptedEffect(name, delta_bic(prev, step_fit, 2 * setup.full.t_real.size),
                                     float(min(heldout)), [], step_fit))
     sel.cv_gain[name] = float(min(heldout))
     sel.final = step_fit
-    return model.without(blur=eff)
+    return chosen
+
+
+def others_fit(setup: SpectralSetup, model: ForwardModel) -> TransferFit:
+    """The transfer fit of Q and ``model``'s blurs other than resampling, from its Q: the
+    start of :func:`with_resampling`'s refits."""
+    others = [n for n in model.blur if n != "resampling"]
+    return fit_transfer(setup.full, others, q_starts=(model.q,))
+
+
+def with_resampling(setup: SpectralSetup, model: ForwardModel, params: dict[str, float],
+                    start: TransferFit) -> tuple[ForwardModel, TransferFit]:
+    """``model`` with resampling ``params`` (native pitch, px; cubic a) in place of any it
+    holds, Q and its other blurs refitted on the transfer with that resampling held
+    (from ``start``, :func:`others_fit`): the model route 2 scores for these parameters.
+
+    Returns
+    -------
+    model, fit
+        The model and the transfer fit (its ``effects`` hold the resampling too).
+    """
+    others = [n for n in model.blur if n != "resampling"]
+    fit = fit_transfer(setup.full, others, q_starts=(start.q,), start=start,
+                       fixed={"resampling": dict(params)})
+    return model.without(q=fit.q, blur=dict(fit.effects)), fit
 
 
 def _pitch_on_spectrum(setup: SpectralSetup, fit: TransferFit, model: ForwardModel,
@@ -235,9 +262,11 @@ def resampling_detection_limit(inp: Inputs, model: ForwardModel, setup: Spectral
     :func:`~geosim.diagnose.stage_withdraw.jpeg_resampling_beyond_optics` withdraws any
     resampling."""
     base = model.without(blur={k: v for k, v in model.blur.items() if k != "resampling"})
+    start = others_fit(setup, base)
 
     def render(params: dict[str, float] | None) -> list[np.ndarray]:
-        m = base if params is None else base.without(blur={**base.blur, "resampling": params})
+        # as route 2 scores a resampling: Q and the other blurs refitted with it held
+        m = base if params is None else with_resampling(setup, base, params, start)[0]
         return greys(realisations(inp, m, ev.noise_seed))
 
     halves = split_halves(ev.origins, setup.block_px, inp.valid.shape[1])
