@@ -267,19 +267,33 @@ def blur(image: np.ndarray, *, q: float, phi: int = 10, obscuration: float = 0.0
         Float64 blurred image, same shape; its mean equals the input's exactly
         (up to rounding error).
     """
+    arr = np.asarray(image)
+    out = blur_coefficients(dct_coefficients(arr, workers=workers), q=q, phi=phi,
+                            obscuration=obscuration, workers=workers)
+    return out[0] if arr.ndim == 2 else out
+
+
+def dct_coefficients(image: np.ndarray, *, workers: int | None = None) -> np.ndarray:
+    """Orthonormal DCT-II of each band (float64, bands first): what :func:`blur` filters,
+    kept by callers that blur one image at many Q (:func:`blur_coefficients`)."""
+    stack = _as_stack(np.asarray(image))
+    return np.stack([scipy.fft.dctn(band.astype(np.float64), type=2, norm="ortho",
+                                    workers=workers, overwrite_x=True) for band in stack])
+
+
+def blur_coefficients(coefficients: np.ndarray, *, q: float, phi: int = 10,
+                      obscuration: float = 0.0, workers: int | None = None) -> np.ndarray:
+    """:func:`blur` of the image whose :func:`dct_coefficients` are ``coefficients``
+    (bands, rows, cols); the same values. Float64, bands first, DN."""
     q = _check_q(q)
     phi = _check_phi(phi)
     obscuration = _check_obscuration(obscuration)
-    arr = np.asarray(image)
-    stack = _as_stack(arr)
-    transfer = optics_otf_dct(stack.shape[1:], q=q, phi=phi, obscuration=obscuration)
-    out = np.empty(stack.shape)
-    for i, band in enumerate(stack):
-        coef = scipy.fft.dctn(band.astype(np.float64), type=2, norm="ortho", workers=workers,
-                              overwrite_x=True)
-        coef *= transfer
-        out[i] = scipy.fft.idctn(coef, type=2, norm="ortho", workers=workers, overwrite_x=True)
-    return out[0] if arr.ndim == 2 else out
+    transfer = optics_otf_dct(coefficients.shape[1:], q=q, phi=phi, obscuration=obscuration)
+    out = np.empty(coefficients.shape)
+    for i, coef in enumerate(coefficients):
+        out[i] = scipy.fft.idctn(coef * transfer, type=2, norm="ortho", workers=workers,
+                                 overwrite_x=True)
+    return out
 
 
 def _resize_cubic(band: np.ndarray, out_shape: tuple[int, int], phi: int) -> np.ndarray:

@@ -11,7 +11,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from geosim.degrade.core import SpectralDegrader, blur, degrade_array
+from geosim.degrade.core import (
+    SpectralDegrader,
+    blur_coefficients,
+    dct_coefficients,
+    degrade_array,
+)
 from geosim.physics import otf
 from geosim.physics.cubic import OPENCV_A, cubic_resize
 from geosim.physics.geometry import fourier_shift
@@ -58,6 +63,7 @@ class QSimulator:
         self._variants: dict[object, QSimulator] = {}
         self._native_fine: tuple[object, np.ndarray] | None = None
         self._native_low: tuple[object, list[np.ndarray]] | None = None
+        self._native_coef: tuple[object, np.ndarray] | None = None
         if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
             self.uav = None
 
@@ -137,14 +143,18 @@ class QSimulator:
         the simulator keeps no image or the image has invalid pixels. Bands first, DN, float64."""
         if self.uav is None or (self.valid is not None and not np.all(self.valid)):
             return None
-        ck = (round(float(q), 4), round(float(shift_px[0]), 6), round(float(shift_px[1]), 6),
-              key)
+        moved_key = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6), key)
+        ck = (round(float(q), 4), *moved_key)
         if self._native_fine is None or self._native_fine[0] != ck:
-            img = np.asarray(self.uav, dtype=float)
-            img = self._moved_filtered(img[np.newaxis] if img.ndim == 2 else img, shift_px,
-                                       transfer)
+            if self._native_coef is None or self._native_coef[0] != moved_key:
+                # the moved, filtered fine image's DCT kept: scans refit Q pitch by pitch
+                img = np.asarray(self.uav, dtype=float)
+                img = self._moved_filtered(img[np.newaxis] if img.ndim == 2 else img,
+                                           shift_px, transfer)
+                self._native_coef = (moved_key, dct_coefficients(img))
             # one Airy-blurred fine image kept (the pitch scans reuse it)
-            self._native_fine = (ck, blur(img, q=q, phi=self.phi).astype(np.float32))
+            fine = blur_coefficients(self._native_coef[1], q=q, phi=self.phi)
+            self._native_fine = (ck, fine.astype(np.float32))
             self._native_low = None
         fine = self._native_fine[1]
         rows, cols = fine.shape[-2] // self.phi, fine.shape[-1] // self.phi

@@ -28,7 +28,6 @@ from geosim.diagnose.stage_withdraw import native_nyquist_floor_px
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
 __all__ = ["aliasing_test", "split_halves", "resampling_detection_limit", "with_resampling",
-           "others_fit",
            "ALIASING_SPECTRAL_GAIN", "ALIASING_SPECTRAL_GAIN_SPLIT"]
 
 #: resampling not chosen by the transfer fit is still claimed when its aliasing, which the
@@ -67,9 +66,9 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
        lies), its native pitch and kernel (OpenCV's a = −0.75 or Keys' −0.5) are fitted on
        the power spectrum itself, by split halves: the pair chosen on the left half of the
        blocks must improve the right half's spectral error by the same margin, and vice
-       versa. Each scanned pair is rendered with Q and the other blurs refitted on the
-       transfer with that resampling held (:func:`with_resampling`): Q had taken up the
-       resampling's roll-off, and the two added at the Q fitted without it blur twice.
+       versa. Each scanned pair is rendered with Q refitted on the transfer with that
+       resampling held (:func:`with_resampling`): Q had taken up the resampling's
+       roll-off, and the two at the Q fitted without it blur twice.
     3. A pitch the transfer gave (route 1, or forward selection) is moved to the scanned
        pitch of lowest spectral error (:func:`_pitch_on_spectrum`; not under JPEG).
 
@@ -127,10 +126,8 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     def at(a: float, p: float) -> dict[str, float]:
         return {"native_pitch_px": p, "cubic_a": a}
 
-    # rendered pitch by pitch: the simulator keeps a pitch's native sampling for the next
-    # kernel (same images as in the scan's order)
-    start = others_fit(setup, model)
-    fitted = {(float(a), float(p)): with_resampling(setup, model, at(float(a), float(p)), start)
+    # each pair at its own Q: the simulator keeps the fine image's DCT for the whole scan
+    fitted = {(float(a), float(p)): with_resampling(setup, model, at(float(a), float(p)))
               for p in pitches for a in (OPENCV_A, KEYS_A)}
     rendered = {g: delivered(m) for g, (m, _) in fitted.items()}
     imgs = [rendered[g] for g in grid]
@@ -150,11 +147,14 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
         # 1.15 px where the truth was atmosphere at Q 4)
         return model
     chosen, fit_p = fitted[grid[j]]
-    # the transfer's view (reported): Q and the other blurs refitted with the spectrally
-    # fitted resampling held; its uncertainty the scan's steps: 0.05 px in pitch, the
-    # kernel one of two (0.25 apart)
-    sigmas = {**fit_p.sigmas, name: {"native_pitch_px": PITCH_STEP, "cubic_a": 0.25}}
-    step_fit = replace(fit_p, sigmas=sigmas, n_params=fit_p.n_params + 2)
+    # the transfer's view (reported): Q refitted with the spectrally fitted resampling
+    # held; its uncertainty the scan's steps: 0.05 px in pitch, the kernel one of two
+    # (0.25 apart)
+    sigmas = {**prev.sigmas, **fit_p.sigmas,
+              name: {"native_pitch_px": PITCH_STEP, "cubic_a": 0.25}}
+    # parameters: the previous fit's (the other blurs held at its values) and the two
+    # scanned here
+    step_fit = replace(fit_p, sigmas=sigmas, n_params=prev.n_params + 2)
     # heldout_gain here: the held-out drop of the spectral error (the weaker half)
     sel.steps.append(AcceptedEffect(name, delta_bic(prev, step_fit, 2 * setup.full.t_real.size),
                                     float(min(heldout)), [], step_fit))
@@ -163,27 +163,21 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     return chosen
 
 
-def others_fit(setup: SpectralSetup, model: ForwardModel) -> TransferFit:
-    """The transfer fit of Q and ``model``'s blurs other than resampling, from its Q: the
-    start of :func:`with_resampling`'s refits."""
-    others = [n for n in model.blur if n != "resampling"]
-    return fit_transfer(setup.full, others, q_starts=(model.q,))
-
-
-def with_resampling(setup: SpectralSetup, model: ForwardModel, params: dict[str, float],
-                    start: TransferFit) -> tuple[ForwardModel, TransferFit]:
+def with_resampling(setup: SpectralSetup, model: ForwardModel, params: dict[str, float]
+                    ) -> tuple[ForwardModel, TransferFit]:
     """``model`` with resampling ``params`` (native pitch, px; cubic a) in place of any it
-    holds, Q and its other blurs refitted on the transfer with that resampling held
-    (from ``start``, :func:`others_fit`): the model route 2 scores for these parameters.
+    holds and Q refitted on the transfer with it and the other blurs held: the model
+    route 2 scores for these parameters. The other blurs are not refitted: their shapes
+    are the transfer's, and held they keep one fine-grid render for the whole scan.
 
     Returns
     -------
     model, fit
-        The model and the transfer fit (its ``effects`` hold the resampling too).
+        The model and the transfer fit (its ``effects``: every blur of the model).
     """
-    others = [n for n in model.blur if n != "resampling"]
-    fit = fit_transfer(setup.full, others, q_starts=(start.q,), start=start,
-                       fixed={"resampling": dict(params)})
+    held = {**{n: p for n, p in model.blur.items() if n != "resampling"},
+            "resampling": dict(params)}
+    fit = fit_transfer(setup.full, [], q_starts=(model.q,), fixed=held)
     return model.without(q=fit.q, blur=dict(fit.effects)), fit
 
 
@@ -262,11 +256,10 @@ def resampling_detection_limit(inp: Inputs, model: ForwardModel, setup: Spectral
     :func:`~geosim.diagnose.stage_withdraw.jpeg_resampling_beyond_optics` withdraws any
     resampling."""
     base = model.without(blur={k: v for k, v in model.blur.items() if k != "resampling"})
-    start = others_fit(setup, base)
 
     def render(params: dict[str, float] | None) -> list[np.ndarray]:
-        # as route 2 scores a resampling: Q and the other blurs refitted with it held
-        m = base if params is None else with_resampling(setup, base, params, start)[0]
+        # as route 2 scores a resampling: Q refitted with it held
+        m = base if params is None else with_resampling(setup, base, params)[0]
         return greys(realisations(inp, m, ev.noise_seed))
 
     halves = split_halves(ev.origins, setup.block_px, inp.valid.shape[1])
