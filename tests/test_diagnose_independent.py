@@ -319,6 +319,27 @@ def test_resampling_under_jpeg_beyond_the_optics_is_withdrawn(realdata, samples_
                - true["truth"]["resampling"]["native_pitch_px"]) < 0.2
 
 
+def test_resampling_by_its_aliasing_with_q_refitted(realdata, samples_dir):
+    """Round 19. Development c192 (a 1.69 px native grid and a shift at Q 3.95 on an SJER
+    tile): the optics cut the band where resampling's roll-off lies, so route 2 finds it
+    on the power spectrum. Scanned at the Q fitted without it, each pitch blurred twice
+    (Q had taken up the roll-off) and none passed; with Q refitted for each scanned
+    resampling it is found near its pitch and the refined Q is the true one. c605 (a
+    control at Q 3.93) stays clean."""
+    import diagnose_independent as bench
+
+    sources = gen.pick_sources(gen.list_sources(realdata, samples_dir))
+    row = bench.diagnose_case(gen.make_case(192, sources))
+    assert set(row["truth"]) == {"resampling", "misregistration"}
+    assert set(row["claimed"]) == {"resampling", "misregistration"}, row["claimed"]
+    assert abs(row["claimed"]["resampling"]["native_pitch_px"]
+               - row["truth"]["resampling"]["native_pitch_px"]) < 0.1
+    assert abs(row["q_refined"] / row["q_true"] - 1) < 0.03
+    assert row["se_refined"] <= 0.5 * row["se_base"]
+    control = bench.diagnose_case(gen.make_case(605, sources))
+    assert control["truth"] == {} and control["claimed"] == {}, control["claimed"]
+
+
 def test_extension_cases_leave_the_halves_unchanged(realdata, samples_dir):
     """The development extension (seeds 5000-5999, forced effect sets) is its own split;
     forcing effects outside it is refused, and the halves' seeds still give the cases
