@@ -178,13 +178,11 @@ def plausible(name: str, params: dict[str, float]) -> bool:
 Folds = Sequence[tuple[SpectralData, SpectralData]]
 
 
-def cv_chi2(folds: Folds, names: Sequence[str], start: TransferFit,
-            fixed: dict[str, dict[str, float]] | None = None) -> float:
-    """Σ over folds of the held-out χ² of a model fitted on the other folds (``fixed``:
-    effects held at their parameters, :func:`~geosim.diagnose.fit.fit_transfer`)."""
+def cv_chi2(folds: Folds, names: Sequence[str], start: TransferFit) -> float:
+    """Σ over folds of the held-out χ² of a model fitted on the other folds."""
     total = 0.0
     for train, test in folds:
-        f = fit_transfer(train, names, q_starts=(start.q,), start=start, fixed=fixed)
+        f = fit_transfer(train, names, q_starts=(start.q,), start=start)
         total += evaluate_chi2(test, q=f.q, gain=f.gain, effects=f.effects)
     return total
 
