@@ -268,8 +268,11 @@ def blur(image: np.ndarray, *, q: float, phi: int = 10, obscuration: float = 0.0
         (up to rounding error).
     """
     arr = np.asarray(image)
-    out = blur_coefficients(dct_coefficients(arr, workers=workers), q=q, phi=phi,
-                            obscuration=obscuration, workers=workers)
+    stack = _as_stack(arr)
+    transfer = _checked_otf_dct(stack.shape[1:], q, phi, obscuration)
+    out = np.empty(stack.shape)
+    for i, band in enumerate(stack):  # one band's coefficients at a time (memory)
+        out[i] = _idct_filtered(_dct_band(band, workers), transfer, workers)
     return out[0] if arr.ndim == 2 else out
 
 
@@ -277,23 +280,39 @@ def dct_coefficients(image: np.ndarray, *, workers: int | None = None) -> np.nda
     """Orthonormal DCT-II of each band (float64, bands first): what :func:`blur` filters,
     kept by callers that blur one image at many Q (:func:`blur_coefficients`)."""
     stack = _as_stack(np.asarray(image))
-    return np.stack([scipy.fft.dctn(band.astype(np.float64), type=2, norm="ortho",
-                                    workers=workers, overwrite_x=True) for band in stack])
+    out = np.empty(stack.shape)
+    for i, band in enumerate(stack):
+        out[i] = _dct_band(band, workers)
+    return out
 
 
 def blur_coefficients(coefficients: np.ndarray, *, q: float, phi: int = 10,
                       obscuration: float = 0.0, workers: int | None = None) -> np.ndarray:
     """:func:`blur` of the image whose :func:`dct_coefficients` are ``coefficients``
     (bands, rows, cols); the same values. Float64, bands first, DN."""
-    q = _check_q(q)
-    phi = _check_phi(phi)
-    obscuration = _check_obscuration(obscuration)
-    transfer = optics_otf_dct(coefficients.shape[1:], q=q, phi=phi, obscuration=obscuration)
+    transfer = _checked_otf_dct(coefficients.shape[1:], q, phi, obscuration)
     out = np.empty(coefficients.shape)
     for i, coef in enumerate(coefficients):
-        out[i] = scipy.fft.idctn(coef * transfer, type=2, norm="ortho", workers=workers,
-                                 overwrite_x=True)
+        out[i] = _idct_filtered(coef, transfer, workers)
     return out
+
+
+def _checked_otf_dct(shape: tuple[int, ...], q: float, phi: int, obscuration: float
+                     ) -> np.ndarray:
+    """:func:`optics_otf_dct` of the full ``shape`` after the arguments' checks."""
+    return optics_otf_dct((int(shape[0]), int(shape[1])), q=_check_q(q), phi=_check_phi(phi),
+                          obscuration=_check_obscuration(obscuration))
+
+
+def _dct_band(band: np.ndarray, workers: int | None) -> np.ndarray:
+    return scipy.fft.dctn(band.astype(np.float64), type=2, norm="ortho", workers=workers,
+                          overwrite_x=True)
+
+
+def _idct_filtered(coef: np.ndarray, transfer: np.ndarray, workers: int | None) -> np.ndarray:
+    # a new array (``coef`` may be kept by the caller), transformed in place
+    return scipy.fft.idctn(coef * transfer, type=2, norm="ortho", workers=workers,
+                           overwrite_x=True)
 
 
 def _resize_cubic(band: np.ndarray, out_shape: tuple[int, int], phi: int) -> np.ndarray:
