@@ -259,6 +259,8 @@ def combine_flights(docs: Mapping[str, Mapping[str, Any]], *, reference: str
                                 else len(ref_order)))
     base = {k: _median([docs[f]["baseline"][k] for f in ids])
             for k in ("q", "lv_satellite", "lv_simulated", "rmse", "spectral_error")}
+    base["spectral_error_whole"] = _median([docs[f]["baseline"].get("spectral_error_whole")
+                                            for f in ids])
     base["q_by_flight"] = {f: docs[f]["baseline"]["q"] for f in ids}
     q_ref = [docs[f]["refined"]["q"] for f in ids]
     q_stat = _median([docs[f]["refined"].get("q_sigma") for f in ids])
@@ -272,6 +274,8 @@ def combine_flights(docs: Mapping[str, Mapping[str, Any]], *, reference: str
                "physical_q_range": list(phys),
                "rmse": _median([docs[f]["refined"]["rmse"] for f in ids]),
                "spectral_error": _median([docs[f]["refined"]["spectral_error"] for f in ids]),
+               "spectral_error_whole": _median([docs[f]["refined"].get("spectral_error_whole")
+                                                for f in ids]),
                "q_by_flight": dict(zip(ids, q_ref, strict=True))}
     cands = sorted({k for f in ids for k in docs[f].get("candidates_delta_bic", {})})
     cand = {k: _median([docs[f].get("candidates_delta_bic", {}).get(k) for f in ids])

@@ -307,7 +307,9 @@ class SceneChange(Effect):
     signature = "localized object-sized residuals that no global physics explains"
     explanation = ("The ground itself changed between the UAV flight and the satellite pass "
                    "(cattle moved, shadows, water, vehicles); these areas are excluded from the "
-                   "physics fit.")
+                   "physics fit, and the refined simulation models the change in them as "
+                   "compact objects that appeared or left, seen through the fitted optics "
+                   "(n_objects_modelled; 0 where they did not improve the fit).")
 
     def apply(self, image, *, rng=None, **params):
         return np.asarray(image, dtype=float)

@@ -18,7 +18,9 @@ cross-validation folds, forward blur selection) →
 :func:`~geosim.diagnose.stage_register.confirm_shift` (the shift against the refined model) →
 :mod:`~geosim.diagnose.stage_aliasing` and :mod:`~geosim.diagnose.stage_withdraw` (checks on
 the delivered spectrum; the refined simulation may not fit worse than the baseline) →
-:func:`~geosim.diagnose.stage_claims.claim_effects` and
+:func:`~geosim.diagnose.stage_claims.claim_effects` →
+:func:`~geosim.diagnose.stage_change.model_moved_objects` (a claimed scene change modelled
+as moved objects, :mod:`~geosim.diagnose.stage_objects`) and
 :func:`~geosim.diagnose.stage_summary.make_summary`.
 """
 
@@ -40,6 +42,7 @@ from geosim.diagnose.stage_blur import adopt, select_with_q_room
 from geosim.diagnose.stage_change import (
     MIN_REGION_DN2,
     changed_regions,
+    model_moved_objects,
     resampling_phase_dn2,
 )
 from geosim.diagnose.stage_claims import claim_effects
@@ -175,13 +178,22 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model, withdrawn = never_worse(inp, model, sel, setup, ev,
                                    whole.spectral_error if len(whole.origins) >= 4 else None)
     withdrawn = withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso + withdrawn
-    refined = model.delivered(simulate, np.random.default_rng(ev.noise_seed),
-                              quantized=inp.quantized)
     claims = claim_effects(inp, model.without(registration=reg, compression=found.compression,
                                               seam=found.seam, radiometry=found.radiometry),
                            sel, change, ev)
+    se_whole = whole.spectral_error if len(whole.origins) >= 4 else None
+    if any(c.name == "scene_change" for c in claims):
+        # the claimed change modelled: moved objects in the refined simulation
+        model = model_moved_objects(inp, model, change, ev, se_whole)
+        for c in claims:
+            if c.name == "scene_change":
+                c.params["n_objects_modelled"] = (len(model.objects.objects)
+                                                  if model.objects is not None else 0)
+    refined = model.delivered(simulate, np.random.default_rng(ev.noise_seed),
+                              quantized=inp.quantized)
     summary = make_summary(inp, model, sel, setup, claims, ev, refined, withdrawn,
-                           resampling_tested="resampling" in window.candidates)
+                           resampling_tested="resampling" in window.candidates,
+                           se_whole=se_whole)
     maps = mismatch_maps(inp, model, energy)
     plots = plot_data(inp, model, sel, setup, ev, refined, summary)
     return Diagnosis(summary=summary, real=inp.real, baseline=inp.base, refined=refined,

@@ -17,6 +17,7 @@ import numpy as np
 from geosim.diagnose.coregister import AffineEstimate, ShiftEstimate, warp_by_field
 from geosim.diagnose.effects import get_effect
 from geosim.diagnose.seam import GainStep
+from geosim.diagnose.stage_objects import SceneObjects
 from geosim.physics import otf
 from geosim.physics.geometry import fourier_shift
 
@@ -192,6 +193,9 @@ class ForwardModel:
     #: placed elsewhere (a real grid's phase is unknown; see
     #: :func:`geosim.diagnose.stage_change.resampling_phase_dn2`)
     native_phase_shift_px: tuple[float, float] = (0.0, 0.0)
+    #: moved objects (scene change) added to the product before noise and compression
+    #: (:mod:`geosim.diagnose.stage_objects`); None: the ground as the UAV saw it
+    objects: SceneObjects | None = None
 
     def sim_at(self, simulate: Callable[[float], np.ndarray], q: float | None = None, *,
                compressed: bool = True) -> np.ndarray:
@@ -258,7 +262,8 @@ class ForwardModel:
 
     def _before_compression(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
         m = self.blurred(simulate)
-        return self.radiometry.apply(m) if self.radiometry is not None else m
+        m = self.radiometry.apply(m) if self.radiometry is not None else m
+        return self.objects.apply(m) if self.objects is not None else m
 
     def deterministic(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
         """The expected refined image (no noise realisation). Compression acts last, on

@@ -1,19 +1,24 @@
 """Scene change: regions of significant residual energy (:func:`changed_regions`, used
-to mask the fit and as the final maps' regions) and the evidence of a
-``scene_change`` claim."""
+to mask the fit and as the final maps' regions), the evidence of a ``scene_change``
+claim and the moved objects that model it in the refined simulation
+(:func:`model_moved_objects`)."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 from scipy import ndimage
 
 from geosim.diagnose import locate
-from geosim.diagnose.context import ChangedRegions
+from geosim.diagnose.context import ChangedRegions, EvalContext
 from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.stage_inputs import Inputs, grey
+from geosim.diagnose.stage_objects import fit_moved_objects
 from geosim.diagnose.stage_radiometry import affine_residual
 
-__all__ = ["changed_regions", "scene_change_claim", "resampling_phase_dn2", "MIN_REGION_DN2"]
+__all__ = ["changed_regions", "scene_change_claim", "resampling_phase_dn2",
+           "model_moved_objects", "MIN_REGION_DN2"]
 
 #: floor of the residual energy a region must exceed (× ratio threshold), DN²
 MIN_REGION_DN2 = 4.0
@@ -89,3 +94,33 @@ def scene_change_claim(inp: Inputs, model: ForwardModel, sc: list[locate.Region]
     dbic = float(n_in * (v_in / v_out - 1 - np.log(max(v_in / v_out, 1e-12)))
                  - 2 * len(sc) * np.log(max(inner.sum() / 4.0, 2.0)))
     return Claim("scene_change", {"n_regions": len(sc), "area_m2": area}, {}, dbic)
+
+
+def model_moved_objects(inp: Inputs, model: ForwardModel, change: ChangedRegions,
+                        ev: EvalContext, se_whole: Callable[[np.ndarray], float] | None
+                        ) -> ForwardModel:
+    """The refined model with the moved objects of the ``scene_change`` regions
+    (:func:`~geosim.diagnose.stage_objects.fit_moved_objects`), fitted on the residual of
+    its deterministic image; kept only where the delivered simulation then fits the
+    scene's spectrum better over the whole valid extent (``se_whole``, the changed areas
+    included) and, as every refined simulation, no worse than the baseline there and
+    outside the changed regions (``ev``; the objects' blurred edges reach into its blocks).
+    ``model`` as it is otherwise."""
+    det = model.deterministic(inp.simulate)
+    objects = fit_moved_objects(inp.real - det, change.inner, change.labels,
+                                change.regions, q=float(model.q), blur=model.blur, model=det)
+    if objects is None or se_whole is None:
+        return model
+    with_objects = model.without(objects=objects)
+
+    def delivered(m: ForwardModel) -> np.ndarray:
+        return m.delivered(inp.simulate, np.random.default_rng(ev.noise_seed),
+                           quantized=inp.quantized)
+
+    base = np.round(inp.base) if inp.quantized else inp.base
+    after = delivered(with_objects)
+    whole_after = se_whole(after)
+    if (whole_after < se_whole(delivered(model)) and whole_after <= se_whole(base)
+            and ev.spectral_error(after) <= ev.spectral_error(base)):
+        return with_objects
+    return model

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -45,18 +46,23 @@ def _ambiguity_note(claim: Claim) -> str:
 
 def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
                  claims: list[Claim], ev: EvalContext, refined: np.ndarray,
-                 withdrawn: list[dict[str, str]], *, resampling_tested: bool = True
-                 ) -> dict[str, Any]:
+                 withdrawn: list[dict[str, str]], *, resampling_tested: bool = True,
+                 se_whole: Callable[[np.ndarray], float] | None = None) -> dict[str, Any]:
     """The JSON-able summary written to ``diagnosis.json`` (baseline, effects, refined
     fit, ambiguities, detection limits at the delivered Q, withdrawals, candidates,
     co-registration, noise, settings); RMSEs
     over ``ev.mask``, spectral errors on ``ev``'s blocks. ``resampling_tested``: whether
-    resampling was among the candidates (its detection limit is then stated too)."""
+    resampling was among the candidates (its detection limit is then stated too);
+    ``se_whole``: the spectral error over every valid block, the changed regions included
+    (``spectral_error_whole`` of the baseline and the refined simulation; NaN without)."""
     eval_mask, se_of = ev.mask, ev.spectral_error
     base_rmse = rmse(inp.base, inp.real, eval_mask)
     base_se = se_of(np.round(inp.base) if inp.quantized else inp.base)
     ref_rmse = rmse(model.deterministic(inp.simulate), inp.real, eval_mask)
     ref_se = se_of(refined)
+    whole_base, whole_ref = ((se_whole(np.round(inp.base) if inp.quantized else inp.base),
+                              se_whole(refined)) if se_whole is not None
+                             else (float("nan"), float("nan")))
     ambiguities = [{"claimed": c.name, "alternatives": [a["name"] for a in c.alternatives],
                     "note": _ambiguity_note(c)} for c in claims if c.alternatives]
     reg, n = model.registration, model.noise
@@ -73,7 +79,8 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
         "baseline": {"q": inp.q_base, "lv_satellite": locate.laplacian_variance(inp.grey,
                                                                                 inp.valid),
                      "lv_simulated": locate.laplacian_variance(grey(inp.base), inp.valid),
-                     "rmse": base_rmse, "spectral_error": base_se},
+                     "rmse": base_rmse, "spectral_error": base_se,
+                     "spectral_error_whole": whole_base},
         "effects": [c.to_json() for c in claims],
         "refined": {"q": float(model.q), "q_sigma": float(qs),  # type: ignore[arg-type]
                     "q_in_physical_range": bool(PHYSICAL_Q[0] <= model.q <= PHYSICAL_Q[1]),
@@ -81,9 +88,15 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
                                            or model.q >= q_grid[-1] / 1.01),
                     "physical_q_range": list(PHYSICAL_Q),
                     "rmse": ref_rmse, "spectral_error": ref_se,
+                    "spectral_error_whole": whole_ref,
                     "rmse_note": "rmse of the noise-free models; spectral_error of the "
                                  "simulations as delivered (with the refined noise realisation, "
-                                 "rounded to whole DN when the real scene is)"},
+                                 "rounded to whole DN when the real scene is) on the blocks "
+                                 "outside the changed regions, spectral_error_whole on every "
+                                 "valid block (the changed regions included)",
+                    # scene change modelled: the moved objects in the refined simulation
+                    "moved_objects": ([o.to_json(inp.gsd_m) for o in model.objects.objects]
+                                      if model.objects is not None else [])},
         "ambiguities": ambiguities,
         "detection_limits": limits,
         "withdrawn": withdrawn,
