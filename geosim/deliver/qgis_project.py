@@ -283,7 +283,11 @@ def build_groups(site: SiteConfig, out: Path) -> list[tuple[str, list[Layer]]]:
                         "paddocks", fill_renderer((0, 255, 255), width_mm=0.8), "Polygon",
                         labels=field_labels("label"))] if paddocks_gpkg else []
     diag = [_vector(out, "diagnosis/regions.gpkg", "regions", "mismatch regions",
-                    "diag_regions", fill_renderer((255, 0, 255), fill_alpha=60), "Polygon")]
+                    "diag_regions", fill_renderer((255, 0, 255), fill_alpha=60), "Polygon"),
+            _vector(out, "diagnosis/moved_objects.gpkg", "moved_objects",
+                    "moved objects (scene change, modelled)", "diag_moved_objects",
+                    fill_renderer((0, 200, 255), fill_alpha=90), "Polygon",
+                    labels=field_labels("change"))]
     diag += [_raster(out, f"diagnosis/{m}.tif", m.replace("_", " "), f"diag_{m}", stretch=True)
              for m in ("map_residual_energy", "map_blur_ratio", "map_gain", "map_offset")]
     sat_time = site.satellite.acquired if site.satellite else None

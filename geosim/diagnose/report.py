@@ -1,4 +1,5 @@
-"""Writing a diagnosis: GeoTIFFs, regions.geojson, diagnosis.json, plots and report.md
+"""Writing a diagnosis: GeoTIFFs, regions.geojson, moved_objects.geojson, diagnosis.json,
+plots and report.md
 (figures in :mod:`~geosim.diagnose.report_figures`, the markdown in
 :mod:`~geosim.diagnose.report_markdown`)."""
 
@@ -55,6 +56,35 @@ def _regions_gdf(diag: Diagnosis, transform: Affine, crs: CRS):
     return gdf
 
 
+#: columns of moved_objects.geojson (with the geometry: the object's ellipse)
+OBJECT_COLUMNS = ["object", "change", "length_m", "width_m", "angle_deg", "contrast_dn",
+                  "rss_drop"]
+
+
+def _objects_gdf(summary: dict[str, Any], transform: Affine, crs: CRS):
+    """The refined simulation's moved objects (``summary["refined"]["moved_objects"]``) as
+    ellipse polygons in map coordinates (32 vertices)."""
+    import geopandas as gpd
+    from shapely.geometry import Polygon
+
+    gsd_m = abs(transform.a)
+    t = np.linspace(0.0, 2.0 * np.pi, 32, endpoint=False)
+    rows = []
+    for k, o in enumerate(summary.get("refined", {}).get("moved_objects", []), start=1):
+        a, b = o["size_m"][0] / (2 * gsd_m), o["size_m"][1] / (2 * gsd_m)
+        th = np.deg2rad(o["angle_deg"])
+        # pixel (col, row); the major axis turns anticlockwise on the map (rows run south)
+        col = o["centre_px"][0] + a * np.cos(t) * np.cos(th) + b * np.sin(t) * np.sin(th)
+        row = o["centre_px"][1] - a * np.cos(t) * np.sin(th) + b * np.sin(t) * np.cos(th)
+        xs, ys = transform * (col, row)
+        rows.append({"object": k, "change": o["change"], "length_m": o["size_m"][0],
+                     "width_m": o["size_m"][1], "angle_deg": o["angle_deg"],
+                     "contrast_dn": ", ".join(f"{c:g}" for c in o["contrast_dn"]),
+                     "rss_drop": o["rss_drop"], "geometry": Polygon(np.column_stack([xs, ys]))})
+    return gpd.GeoDataFrame(rows, columns=[*OBJECT_COLUMNS, "geometry"], geometry="geometry",
+                            crs=crs)
+
+
 def write_diagnosis(diag: Diagnosis, out_dir: str | Path, *, transform: Affine, crs: CRS | str,
                     sources: list[str] | None = None, extra: dict[str, Any] | None = None,
                     dpi: int = DEFAULT_DPI) -> dict[str, Any]:
@@ -81,6 +111,10 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path, *, transform: Affine, 
     write_geojson(gdf, out / "regions.geojson")
     if len(gdf):
         write_gpkg(gdf, out / "regions.gpkg", layer="regions")
+    objects = _objects_gdf(diag.summary, transform, crs)
+    write_geojson(objects, out / "moved_objects.geojson")
+    if len(objects):
+        write_gpkg(objects, out / "moved_objects.gpkg", layer="moved_objects")
     plots = diagnosis_plots(diag, out, transform=transform, crs=crs,
                             flight=(extra or {}).get("flight"), dpi=dpi)
     summary = dict(diag.summary)
@@ -90,6 +124,7 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path, *, transform: Affine, 
                  "width": int(diag.real.shape[-1]), "height": int(diag.real.shape[-2])},
         **summary,
         "regions": "regions.geojson",
+        "moved_objects": "moved_objects.geojson",
         "files": dict(FILES),
         "maps": dict(MAPS),
         "plots": plots,
@@ -117,8 +152,9 @@ def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, refer
 
     ``per`` holds each flight's diagnosis dict (as returned by :func:`write_diagnosis`,
     written to ``out_dir/dirs[flight]``). Writes ``diagnosis.json`` (the issue's schema
-    for the combined verdict, plus ``flights``), ``report.md``, ``regions.geojson`` (all
-    flights' regions, attribute ``flight``) and copies of the reference flight's
+    for the combined verdict, plus ``flights``), ``report.md``, ``regions.geojson`` and
+    ``moved_objects.geojson`` (all flights' regions and moved objects, attribute
+    ``flight``) and copies of the reference flight's
     GeoTIFFs, maps and plots (titled with the reference flight), so that ``files``
     resolves at the top level, and ``flights_combined.png`` (every flight's Q and RMSE
     beside the combined verdict, titled "All flights (combined)") at ``dpi``.
@@ -135,22 +171,30 @@ def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, refer
     ref = per[reference]
     for name in [*FILES.values(), *MAPS.values(), *ref.get("plots", [])]:
         _copy_atomic(ref_dir / name, out / name)
-    frames = []
-    crs = None
-    for f in per:
-        path = out / dirs[f] / "regions.geojson"
-        g = gpd.read_file(path)
-        crs = crs or CRS.from_user_input(ref["grid"]["crs"])
-        if len(g):
-            g = g.to_crs(crs)
-            g.insert(0, "flight", f)
-            frames.append(g)
-    if frames:
-        gdf = gpd.GeoDataFrame(pd.concat(frames, ignore_index=True), geometry="geometry",
-                               crs=crs)
-    else:
-        gdf = gpd.GeoDataFrame({"flight": [], "rank": [], "kind": []}, geometry=[], crs=crs)
+    crs = CRS.from_user_input(ref["grid"]["crs"])
+
+    def all_flights(name: str, empty_columns: list[str]) -> gpd.GeoDataFrame:
+        """Every flight's ``name`` layer in one, attribute ``flight`` first."""
+        frames = []
+        for f in per:
+            path = out / dirs[f] / name
+            g = gpd.read_file(path) if path.is_file() else None
+            if g is not None and len(g):
+                g = g.to_crs(crs)
+                g.insert(0, "flight", f)
+                frames.append(g)
+        if frames:
+            return gpd.GeoDataFrame(pd.concat(frames, ignore_index=True),
+                                    geometry="geometry", crs=crs)
+        return gpd.GeoDataFrame({c: [] for c in ["flight", *empty_columns]}, geometry=[],
+                                crs=crs)
+
+    gdf = all_flights("regions.geojson", ["rank", "kind"])
     write_geojson(gdf, out / "regions.geojson")
+    objects = all_flights("moved_objects.geojson", OBJECT_COLUMNS)
+    write_geojson(objects, out / "moved_objects.geojson")
+    if len(objects):
+        write_gpkg(objects, out / "moved_objects.gpkg", layer="moved_objects")
     if len(gdf):
         write_gpkg(gdf, out / "regions.gpkg", layer="regions")
     comb = combine_flights(per, reference=reference)
@@ -159,7 +203,7 @@ def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, refer
     flights = {f: {**to_jsonable(d, nan_to_null=True), "dir": dirs[f]} for f, d in per.items()}
     doc: dict[str, Any] = {
         "grid": ref["grid"], **comb,
-        "regions": "regions.geojson",
+        "regions": "regions.geojson", "moved_objects": "moved_objects.geojson",
         "files": dict(FILES), "maps": dict(MAPS), "plots": plots,
         "report": "report.md", "reference_flight": reference,
         "flights": flights, "flights_skipped": dict(skipped or {}),

@@ -63,6 +63,16 @@ def diagnosis_markdown(s: dict[str, Any]) -> str:
                  f"`regions.geojson` (ranked; kind `scene_change` = object-sized local change, "
                  f"excluded from the physics fit; `global` = large areas). "
                  + ("Scene changes were found." if n_sc else "No object-sized scene change."))
+    objs = s.get("refined", {}).get("moved_objects", [])
+    if objs:
+        left = sum(1 for o in objs if o.get("change") == "left")
+        ref = s["refined"]
+        lines.append(f"\nThe refined simulation models the change as {len(objs)} compact "
+                     f"objects seen through the fitted optics ({len(objs) - left} appeared, "
+                     f"{left} left; ellipses in `moved_objects.geojson`): spectral error over "
+                     f"the whole scene "
+                     f"{s['baseline'].get('spectral_error_whole', float('nan')):.3f} (baseline)"
+                     f" → {ref.get('spectral_error_whole', float('nan')):.3f}.")
     lines.append("\nMaps: `map_residual_energy.tif`, `map_blur_ratio.tif`, `map_gain.tif`, "
                  "`map_offset.tif`; plots: `transfer_function.png`, `noise_vs_brightness.png`, "
                  "`mismatch_maps.png`.")
@@ -153,8 +163,9 @@ def combined_markdown(doc: dict[str, Any], per: dict[str, dict[str, Any]],
                      + "; ".join(f"{f}: {fmt(p)}" for f, p in by.items()) + ".")
     lines.append("\nThe top-level GeoTIFFs, maps and plots are the reference flight's; every "
                  "flight's full diagnosis (report, maps, plots, regions) is in its folder: "
-                 + ", ".join(f"`{dirs[f]}/`" for f in ids) + ". `regions.geojson` holds the "
-                 "regions of all flights (attribute `flight`).")
+                 + ", ".join(f"`{dirs[f]}/`" for f in ids) + ". `regions.geojson` and "
+                 "`moved_objects.geojson` hold the regions and the modelled moved objects of "
+                 "all flights (attribute `flight`).")
     for f in ids:
         sub = diagnosis_markdown(per[f]).split("\n", 2)[2]  # drop the title
         sub = sub.replace("\n## ", "\n#### ").replace("](", f"]({dirs[f]}/")  # its own figures
