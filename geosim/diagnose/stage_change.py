@@ -103,13 +103,17 @@ def model_moved_objects(inp: Inputs, model: ForwardModel, change: ChangedRegions
     (:func:`~geosim.diagnose.stage_objects.fit_moved_objects`), fitted on the residual of
     its deterministic image; kept only where the delivered simulation then fits the
     scene's spectrum better over the whole valid extent (``se_whole``, the changed areas
-    included) and, as every refined simulation, no worse than the baseline there and
-    outside the changed regions (``ev``; the objects' blurred edges reach into its blocks).
-    ``model`` as it is otherwise."""
+    included) and, as every refined simulation, no worse than the baseline there and on
+    the evaluation blocks (``ev``: outside the changed regions, which the objects do not
+    reach, or the fit's blocks where fewer than 4 lie outside them). ``model`` as it is
+    otherwise, and always where the scene has fewer than 4 whole blocks (``se_whole``
+    None)."""
+    if se_whole is None:
+        return model
     det = model.deterministic(inp.simulate)
     objects = fit_moved_objects(inp.real - det, change.inner, change.labels,
                                 change.regions, q=float(model.q), blur=model.blur, model=det)
-    if objects is None or se_whole is None:
+    if objects is None:
         return model
     with_objects = model.without(objects=objects)
 
