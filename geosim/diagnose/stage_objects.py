@@ -292,6 +292,8 @@ def fit_moved_objects(residual: np.ndarray, valid: np.ndarray, labels: np.ndarra
             continue
         e = np.where(v, e_all[:, r0:r1, c0:c1] - layer[:, r0:r1, c0:c1], 0.0)
         for _ in range(MAX_OBJECTS_PER_REGION + g.area_px // REGION_PX_PER_OBJECT):
+            if float(np.sum(e[:, v] ** 2)) < MIN_OBJECT_CHI2 * var_dn2:
+                break   # no object can remove more than the whole window's residual
             p0 = _start(e, v, q)
             if p0 is None:
                 break
