@@ -48,6 +48,8 @@ MAX_OBJECTS_PER_REGION = 4
 REGION_PX_PER_OBJECT = 20
 #: semi-axis range, product pixels
 AXIS_RANGE_PX = (0.3, 10.0)
+#: σ of the Gaussian closest to the Airy core, in units of Q (product pixels)
+AIRY_SIGMA_PER_Q = 0.42
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,7 @@ def render_ellipse(shape_fine: tuple[int, int], centre_fine: tuple[float, float]
 
 
 class _Window:
-    """One region's window: the residual there and the renderer of an object in it."""
+    """A window on a region: the residual there and the renderer of an object in it."""
 
     def __init__(self, residual: np.ndarray, valid: np.ndarray,
                  transfer: otf.TransferFunction) -> None:
@@ -176,7 +178,7 @@ def _start(e: np.ndarray, valid: np.ndarray, q: float) -> np.ndarray | None:
     """Starting parameters at the strongest blob of the residual ``e`` (bands, h, w): its
     peak (magnitude summed over bands, smoothed by the optics' width) and the second
     moments of the magnitude within a few pixels of it (the optics' variance taken off)."""
-    sigma = max(0.42 * q, 0.5)
+    sigma = max(AIRY_SIGMA_PER_Q * q, 0.5)
     mag = ndimage.gaussian_filter(np.abs(e).sum(axis=0), sigma) * valid
     if float(mag.max()) <= 0:
         return None
@@ -188,7 +190,7 @@ def _start(e: np.ndarray, valid: np.ndarray, q: float) -> np.ndarray | None:
     cy, cx = float((ys * wts).sum() / tot), float((xs * wts).sum() / tot)
     cov = np.cov(np.stack([xs[near], ys[near]]), aweights=wts[near] + 1e-12)
     lam, vec = np.linalg.eigh(cov)
-    psf_var = (0.42 * q) ** 2
+    psf_var = (AIRY_SIGMA_PER_Q * q) ** 2
     a = 2.0 * np.sqrt(max(lam[1] - psf_var, 0.25))
     b = 2.0 * np.sqrt(max(lam[0] - psf_var, 0.1))
     ang = float(np.arctan2(-vec[1, 1], vec[0, 1]))   # anticlockwise on the map
