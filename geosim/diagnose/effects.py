@@ -30,6 +30,7 @@ from geosim.physics.cubic import OPENCV_A
 from geosim.physics.geometry import fourier_shift, step_side
 
 __all__ = [
+    "NON_LSI", "lsi_transfers",
     "ParamSpec", "Effect", "BlurEffect", "CATALOGUE", "BLUR_EFFECTS", "get_effect",
     "resampling_transfer",
 ]
@@ -329,3 +330,15 @@ def get_effect(name: str) -> Effect:
         return CATALOGUE[name]
     except KeyError:
         raise KeyError(f"unknown effect {name!r}; known: {', '.join(CATALOGUE)}") from None
+
+
+#: blur effects whose forward model is not shift-invariant (applied with ``apply``, so that
+#: the refined simulation carries their aliasing, not only their average transfer)
+NON_LSI = ("resampling",)
+
+
+def lsi_transfers(effects: Mapping[str, Mapping[str, Any]]) -> list[otf.TransferFunction]:
+    """The transfer functions of the shift-invariant effects among ``effects`` (name →
+    parameters), in their order; compose them with :func:`geosim.physics.otf.compose`."""
+    return [(lambda fy, fx, n=n, p=p: get_effect(n).transfer(fy, fx, **p))
+            for n, p in effects.items() if n not in NON_LSI]

@@ -175,13 +175,12 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     whole = replace(ev, mask=inp.valid, origins=block_origins(
         inp.valid.shape, block_px=setup.block_px, valid=inp.valid))
     model, withdrawn_iso = jpeg_delivered_isotropic(inp, model, sel, setup, ev)
-    model, withdrawn = never_worse(inp, model, sel, setup, ev,
-                                   whole.spectral_error if len(whole.origins) >= 4 else None)
+    se_whole = whole.spectral_error if len(whole.origins) >= 4 else None
+    model, withdrawn = never_worse(inp, model, sel, setup, ev, se_whole)
     withdrawn = withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso + withdrawn
     claims = claim_effects(inp, model.without(registration=reg, compression=found.compression,
                                               seam=found.seam, radiometry=found.radiometry),
                            sel, change, ev)
-    se_whole = whole.spectral_error if len(whole.origins) >= 4 else None
     if any(c.name == "scene_change" for c in claims):
         # the claimed change modelled: moved objects in the refined simulation
         model = model_moved_objects(inp, model, change, ev, se_whole)

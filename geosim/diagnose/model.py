@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from geosim.diagnose.coregister import AffineEstimate, ShiftEstimate, warp_by_field
-from geosim.diagnose.effects import get_effect
+from geosim.diagnose.effects import NON_LSI, get_effect, lsi_transfers
 from geosim.diagnose.seam import GainStep
 from geosim.diagnose.stage_objects import SceneObjects
 from geosim.physics import otf
@@ -24,19 +24,12 @@ from geosim.physics.geometry import fourier_shift
 __all__ = ["Registration", "CompressionFit", "RadiometryChoice", "NoiseEstimate",
            "ForwardModel", "Claim", "blur_apply", "NON_LSI"]
 
-#: blur effects whose forward model is not shift-invariant (applied with ``apply``, so that
-#: the refined simulation carries their aliasing, not only their average transfer)
-NON_LSI = ("resampling",)
-
-
 def blur_apply(img: np.ndarray, effects: dict[str, dict[str, float]]) -> np.ndarray:
     """Apply blur effects (on the 0.5 m grid) to a bands-first image."""
     out = np.asarray(img, float)
-    lsi = {n: p for n, p in effects.items() if n not in NON_LSI}
+    lsi = lsi_transfers(effects)
     if lsi:
-        tr = otf.compose(*[(lambda fy, fx, n=n, p=p: get_effect(n).transfer(fy, fx, **p))
-                           for n, p in lsi.items()])
-        out = otf.apply_transfer(out, tr)
+        out = otf.apply_transfer(out, otf.compose(*lsi))
     for n, p in effects.items():
         if n in NON_LSI:
             out = get_effect(n).apply(out, **p)
@@ -235,8 +228,7 @@ class ForwardModel:
         reg = self.registration
         pre = reg.applied and reg.field_px is None and reg.presampled is not None
         key = tuple(sorted((n, tuple(sorted(p.items()))) for n, p in lsi.items()))
-        tr = otf.compose(*[(lambda fy, fx, n=n, p=p: get_effect(n).transfer(fy, fx, **p))
-                           for n, p in lsi.items()]) if lsi else None
+        tr = otf.compose(*lsi_transfers(lsi)) if lsi else None
         shift = reg.shift_px if pre else (0.0, 0.0)
         s = None
         if resampled:

@@ -26,7 +26,7 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from geosim.diagnose import locate
-from geosim.diagnose.effects import get_effect
+from geosim.diagnose.effects import lsi_transfers
 from geosim.physics import otf
 
 __all__ = ["MovedObject", "SceneObjects", "fit_moved_objects", "render_ellipse",
@@ -194,16 +194,16 @@ def _start(e: np.ndarray, valid: np.ndarray, q: float) -> np.ndarray | None:
     a = 2.0 * np.sqrt(max(lam[1] - psf_var, 0.25))
     b = 2.0 * np.sqrt(max(lam[0] - psf_var, 0.1))
     ang = float(np.arctan2(-vec[1, 1], vec[0, 1]))   # anticlockwise on the map
-    lo, hi = AXIS_RANGE_PX
+    lo = AXIS_RANGE_PX[0]
     return np.array([cx + 0.5, cy + 0.5, np.log(np.clip(a, lo, 3.0)),
                      np.log(np.clip(b, lo, 3.0)), ang])
 
 
 def _fit_one(w: _Window, p0: np.ndarray, box: tuple[int, int, int, int]
-             ) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None:
     """Best object in the window from the start ``p0``, centred inside ``box`` (row0,
-    col0, row1, col1 in window pixels): (parameters, contrasts, fraction of the RSS
-    removed, RSS removed in DN²)."""
+    col0, row1, col1 in window pixels): (parameters, its unit-contrast shape, contrasts,
+    fraction of the RSS removed, RSS removed in DN²)."""
     lo, hi = np.log(AXIS_RANGE_PX[0]), np.log(AXIS_RANGE_PX[1])
     lower = np.array([float(box[1]), float(box[0]), lo, lo, p0[4] - np.pi])
     upper = np.array([float(box[3]), float(box[2]), hi, hi, p0[4] + np.pi])
@@ -219,7 +219,7 @@ def _fit_one(w: _Window, p0: np.ndarray, box: tuple[int, int, int, int]
     g = w.shape_of(res.x)
     c = w.contrasts(g)
     rss1 = float(np.sum(res.fun ** 2))
-    return res.x, c, 1.0 - rss1 / rss0, rss0 - rss1
+    return res.x, g, c, 1.0 - rss1 / rss0, rss0 - rss1
 
 
 def _change_kind(model: np.ndarray, residual: np.ndarray, blob: np.ndarray,
@@ -266,11 +266,9 @@ def fit_moved_objects(residual: np.ndarray, valid: np.ndarray, labels: np.ndarra
     """
     e_all = np.asarray(residual, float)
     e_all = e_all[np.newaxis] if e_all.ndim == 2 else e_all
-    lsi = {n: p for n, p in (blur or {}).items() if n != "resampling"}
-    transfer = otf.compose(
-        lambda fy, fx: otf.optics_otf(fy, fx, q=q),
-        *[(lambda fy, fx, n=n, p=p: get_effect(n).transfer(fy, fx, **p))
-          for n, p in lsi.items()])
+    model_all = None if model is None else np.asarray(model, float).reshape(e_all.shape)
+    transfer = otf.compose(lambda fy, fx: otf.optics_otf(fy, fx, q=q),
+                           *lsi_transfers(blur or {}))
     pad = int(np.ceil(2.0 * q)) + 3
     half = int(np.ceil(AXIS_RANGE_PX[1])) + pad + 2
     rows, cols = valid.shape
@@ -308,10 +306,10 @@ def fit_moved_objects(residual: np.ndarray, valid: np.ndarray, labels: np.ndarra
             box = (max(g.bbox[0] - r0 - sr0, 0), max(g.bbox[1] - c0 - sc0, 0),
                    min(g.bbox[2] - r0 - sr0, sr1 - sr0), min(g.bbox[3] - c0 - sc0, sc1 - sc0))
             fit = _fit_one(w, p0 - np.array([sc0, sr0, 0.0, 0.0, 0.0]), box)
-            if fit is None or fit[3] < MIN_OBJECT_CHI2 * var_dn2:
+            if fit is None or fit[4] < MIN_OBJECT_CHI2 * var_dn2:
                 break
-            p, c, drop, _ = fit
-            blob = c[:, None, None] * w.shape_of(p)
+            p, shape, c, drop, _ = fit
+            blob = c[:, None, None] * shape
             ar0, ac0 = r0 + sr0, c0 + sc0
             layer[:, ar0:r0 + sr1, ac0:c0 + sc1] += blob
             e[sub] = np.where(v[sub[1:]], e[sub] - blob, 0.0)
@@ -319,8 +317,8 @@ def fit_moved_objects(residual: np.ndarray, valid: np.ndarray, labels: np.ndarra
             ang = float(np.rad2deg(p[4]))
             if b > a:
                 a, b, ang = b, a, ang + 90.0
-            kind = "unknown" if model is None else _change_kind(
-                np.asarray(model, float).reshape(e_all.shape)[:, ar0:r0 + sr1, ac0:c0 + sc1],
+            kind = "unknown" if model_all is None else _change_kind(
+                model_all[:, ar0:r0 + sr1, ac0:c0 + sc1],
                 e_all[:, ar0:r0 + sr1, ac0:c0 + sc1], blob, v[sub[1:]])
             objects.append(MovedObject((ac0 + float(p[0]), ar0 + float(p[1])), (a, b),
                                        ang % 180.0, tuple(float(x) for x in c), drop, kind))
