@@ -173,12 +173,15 @@ def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, refer
         _copy_atomic(ref_dir / name, out / name)
     crs = CRS.from_user_input(ref["grid"]["crs"])
 
-    def all_flights(name: str, empty_columns: list[str]) -> gpd.GeoDataFrame:
-        """Every flight's ``name`` layer in one, attribute ``flight`` first."""
+    def all_flights(name: str, empty_columns: list[str], *, optional: bool = False
+                    ) -> gpd.GeoDataFrame:
+        """Every flight's ``name`` layer in one, attribute ``flight`` first; ``optional``:
+        a flight without the file (a diagnosis reused from before the file existed)
+        contributes nothing, else its absence is an error as any missing output."""
         frames = []
         for f in per:
             path = out / dirs[f] / name
-            g = gpd.read_file(path) if path.is_file() else None
+            g = None if optional and not path.is_file() else gpd.read_file(path)
             if g is not None and len(g):
                 g = g.to_crs(crs)
                 g.insert(0, "flight", f)
@@ -191,7 +194,7 @@ def write_combined(per: dict[str, dict[str, Any]], out_dir: str | Path, *, refer
 
     gdf = all_flights("regions.geojson", ["rank", "kind"])
     write_geojson(gdf, out / "regions.geojson")
-    objects = all_flights("moved_objects.geojson", OBJECT_COLUMNS)
+    objects = all_flights("moved_objects.geojson", OBJECT_COLUMNS, optional=True)
     write_geojson(objects, out / "moved_objects.geojson")
     if len(objects):
         write_gpkg(objects, out / "moved_objects.gpkg", layer="moved_objects")
