@@ -79,7 +79,7 @@ def setup(root: Path, size: int, n_tiles: int, codec: str = "deflate") -> Path:
     from bench_degrade import make_tile
 
     from geosim import manifest
-    from geosim.io.raster import write_geotiff
+    from geosim.prepare.tiles import write_tile_array
 
     tile, _source = make_tile(size)
     t = Affine(0.05, 0, 300000.0, 0, -0.05, 6200000.0)
@@ -88,8 +88,9 @@ def setup(root: Path, size: int, n_tiles: int, codec: str = "deflate") -> Path:
     (root / "flights").mkdir(parents=True, exist_ok=True)
     for i in range(n_tiles):
         path = root / "run" / "tiles" / f"F{i}" / "r000_c000.tif"
-        write_geotiff(path, np.roll(tile, 97 * i, axis=2), transform=t, crs="EPSG:32756",
-                      mask=np.ones(tile.shape[1:], bool), cog_overrides=TILE_CODECS[codec])
+        # written as `geosim tile` writes a tile (with its binomial first overview)
+        write_tile_array(path, np.roll(tile, 97 * i, axis=2), np.ones(tile.shape[1:], bool),
+                         transform=t, crs="EPSG:32756", cog_overrides=TILE_CODECS[codec])
         # the entry `geosim tile` records for each tile it writes (the degrade step's manifest
         # fingerprints such a tile by what made it instead of hashing its bytes)
         manifest.record_output(root / "run", path, [], {"benchmark_tile": i, "codec": codec})

@@ -1,17 +1,18 @@
 """Where the degrade step's CPU goes in-process on one thread and on 2 Dask workers.
 
-A run folder of ``--tiles`` 5000 × 5000 RGB tiles of real imagery (as
-bench_degrade_command.py makes them), half of them partial (an invalid edge strip, as the
-tiles at a flight's edge: the no-data fill runs on them). ``run_degrade`` runs on it
-``--reps`` times per setting, each in its own process: ``1t`` (in-process, one thread,
-``GEOSIM_THREADS=1``) and ``2`` (a local cluster of 2 single-threaded workers, up before
-the clock). Reported per run: wall time, CPU seconds of the driver and of the workers,
-and, summed over the tasks, the task thread's CPU inside each part (``time.thread_time``
-around the step module's ``read_raster``, ``degrade_array``, ``write_geotiff``, the
-manifest's record and check, and the whole ``degrade_tile_task``): what the workers
-spent outside the tasks is ``workers_cpu - task_total`` (Dask's own threads). ``--code
-DIR`` runs another checkout's geosim (e.g. main's, ``git archive main | tar -x -C DIR``),
-alternated with this one.
+A run folder of ``--tiles`` 5000 × 5000 RGB tiles of real imagery (written as ``geosim
+tile`` writes them, as bench_degrade_command.py does), half of them partial (an invalid
+edge strip, as the tiles at a flight's edge: the no-data fill runs on them).
+``run_degrade`` runs on it ``--reps`` times per setting, each in its own process: ``1t``
+(in-process, one thread, ``GEOSIM_THREADS=1``) and ``2`` (a local cluster of 2
+single-threaded workers, up before the clock). Reported per run: wall time, CPU seconds of
+the driver and of the workers, and, summed over the tasks, the task thread's CPU inside
+each part (``time.thread_time`` around the step module's reads — ``read_raster`` and, for
+whole tiles, ``read_binomial_level1`` —, its kernels ``degrade_array`` / ``degrade_level1``,
+``write_geotiff``, the manifest's record and check, and the whole ``degrade_tile_task``):
+what the workers spent outside the tasks is ``workers_cpu - task_total`` (Dask's own
+threads). ``--code DIR`` runs another checkout's geosim (e.g. main's, ``git archive main |
+tar -x -C DIR``), alternated with this one.
 
 Usage: ``python benchmarks/profile_degrade_workers.py [--tiles 8] [--reps 2] [--code DIR]
 [--out FILE]``.
@@ -41,7 +42,7 @@ def setup(root: Path, n_tiles: int) -> None:
     from affine import Affine
     from bench_degrade import make_tile
 
-    from geosim.io.raster import write_geotiff
+    from geosim.prepare.tiles import write_tile_array
 
     tile, _ = make_tile(5000)
     t = Affine(0.05, 0, 300000.0, 0, -0.05, 6200000.0)
@@ -56,7 +57,8 @@ def setup(root: Path, n_tiles: int) -> None:
             valid[: 100 * i] = False
             img[:, ~valid] = 0
         path = root / "run" / "tiles" / fid / "r000_c000.tif"
-        write_geotiff(path, img, transform=t, crs="EPSG:32756", mask=valid)
+        # as `geosim tile` writes it: whole tiles get their binomial first overview
+        write_tile_array(path, img, valid, transform=t, crs="EPSG:32756")
         lines += ['[[flights]]', f'id = "{fid}"', f'image = "{path}"',
                   f'acquired = "2021-07-15T{10 + i:02d}:00:00+10:00"', '']
     (root / "site.toml").write_text("\n".join(lines))
@@ -90,6 +92,9 @@ def install() -> None:
 
     wrap(st, "read_raster", "read")
     wrap(st, "degrade_array", "kernel")
+    if hasattr(st, "read_binomial_level1"):  # whole tiles read at their first overview
+        wrap(st, "read_binomial_level1", "read")
+        wrap(st, "degrade_level1", "kernel")
     wrap(st, "write_geotiff", "write")
     wrap(st, "degrade_tile_task", "task_total")
     wrap(mf, "record_output", "manifest_record")

@@ -117,6 +117,17 @@ def made_by(out: Path, name: str, stat: Mapping[str, int]) -> str | None:
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 
+def vouched_for(out_dir: PathLike, path: PathLike) -> bool:
+    """Whether ``path`` is still the file a geosim task of run folder ``out_dir`` wrote
+    (its entry records its present size and mtime: :func:`made_by`). A file edited in place
+    since, e.g. a tile whose pixels were rewritten while its overviews were not, is not."""
+    out, file = Path(out_dir), Path(path)
+    try:
+        return made_by(out, _name(file, out), file_stat(file)) is not None
+    except OSError:
+        return False
+
+
 def _fingerprint(path: Path, out: Path) -> dict[str, Any]:
     """Size, mtime and what identifies the content of an input: ``made_by`` for a file
     an entry of this run folder vouches for (no need to read it), else its SHA-256."""

@@ -62,6 +62,12 @@ import numpy as np
 import scipy.fft
 
 from geosim.physics.otf import optics_otf
+from geosim.physics.pyramid import (
+    STRIP_ROWS,
+    halve_binomial4_uint8,
+    halve_binomial6,
+    level_gain,
+)
 from geosim.scratch import scratch_array
 
 Method = Literal["fast", "reference"]
@@ -417,8 +423,8 @@ class InvalidFill:
         if self.even and band.dtype == np.uint8:
             rows, cols = band.shape
             out = np.empty((rows // 2, cols // 2), np.float32)
-            for j0 in range(0, rows // 2, _STRIP_ROWS):  # strips whose uint16 stay in cache
-                j1 = min(j0 + _STRIP_ROWS, rows // 2)
+            for j0 in range(0, rows // 2, STRIP_ROWS):  # strips whose uint16 stay in cache
+                j1 = min(j0 + STRIP_ROWS, rows // 2)
                 sums4 = np.multiply(band[2 * j0:2 * j1], self._mask4[2 * j0:2 * j1],
                                     dtype=np.uint16)
                 sums = cv2.resize(sums4, (cols // 2, j1 - j0), interpolation=cv2.INTER_AREA)
@@ -458,82 +464,6 @@ class InvalidFill:
 
 #: Largest relative leak of an alias into a kept DCT coefficient a pyramid level may add.
 ALIAS_TOLERANCE = 5e-4
-
-# Binomial kernels of the levels, centred between samples 1 and 2 (anchor 1 / 2): sampled at
-# even outputs they are the block-centre filters [1, 3, 3, 1]/8 and [1, 5, 10, 10, 5, 1]/32.
-_BINOMIAL_6 = np.array([1, 5, 10, 10, 5, 1], np.float32) / 32
-_BINOMIAL_5 = np.array([1, 4, 6, 4, 1], np.float32) / 16  # ⊛ [1, 1] = _BINOMIAL_6
-#: [1, 2, 1] and 4 × [1, 2, 1]: with a 2 × 2 block sum they make [1, 3, 3, 1] per axis.
-_TAPS_121 = np.array([1, 2, 1], np.float32)
-_TAPS_121_X4 = np.array([4, 8, 4], np.float32)
-#: Output rows per strip of the pyramid levels (their temporaries stay in cache).
-_STRIP_ROWS = 64
-
-
-def halve_binomial4_uint8(band: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """One pyramid level of an even-sized uint8 band: [1, 3, 3, 1]/8 per axis, float32.
-
-    The filter is centred on each 2 × 2 block (``BORDER_REFLECT``: x[−1] = x[0],
-    x[N] = x[N−1]) and evaluated only there: the result is
-    ``sepFilter2D(band, [1, 3, 3, 1], anchor 1)[::2, ::2] / 64``. Since
-    [1, 3, 3, 1] = [1, 2, 1] ⊛ [1, 1], it is OpenCV's [1, 2, 1] filter on every pixel
-    (times 4: ≤ 16320, exact in int16) followed by the exact 2 × 2 block mean of
-    ``INTER_AREA`` (which rounds (4 s + 2) >> 2 = s, the block sum s of the [1, 2, 1]
-    sums, exactly), in strips of rows (each with the row above and below that the
-    filter reaches) whose int16 temporaries stay in cache.
-    ``out``: a float32 (rows / 2, cols / 2) array to write into (default: a new one).
-    """
-    rows, cols = band.shape
-    n_out = rows // 2
-    if out is None:
-        out = np.empty((n_out, cols // 2), np.float32)
-    for j0 in range(0, n_out, _STRIP_ROWS):
-        j1 = min(j0 + _STRIP_ROWS, n_out)
-        s0, s1 = max(2 * j0 - 1, 0), min(2 * j1 + 1, rows)
-        sums4 = cv2.sepFilter2D(band[s0:s1], cv2.CV_16S, _TAPS_121, _TAPS_121_X4,
-                                borderType=cv2.BORDER_REFLECT)[2 * j0 - s0:2 * j1 - s0]
-        block = cv2.resize(sums4, (cols // 2, j1 - j0), interpolation=cv2.INTER_AREA)
-        np.multiply(block, np.float32(1.0 / 64.0), out=out[j0:j1])
-    return out
-
-
-def halve_binomial6(band: np.ndarray, out: np.ndarray | None = None, *,
-                    exact_sums: bool = False) -> np.ndarray:
-    """One pyramid level of an even-sized band: [1, 5, 10, 10, 5, 1]/32 per axis, float32.
-
-    ``sepFilter2D(band, [1, 5, 10, 10, 5, 1]/32, anchor 2, BORDER_REFLECT)[::2, ::2]``,
-    filtered in strips of rows (each with the two rows above and below it that the
-    kernel reaches, so only the image's own edges are reflected): the filtered strip
-    stays in cache instead of a full-size filtered band going through memory.
-    ``out``: a float32 (rows / 2, cols / 2) array to write into (default: a new one).
-    ``exact_sums``: the band holds multiples of 1/64 in [0, 255] (the first level of a
-    uint8 band), so every weighted sum of the filter is exact in float32 (≤ 24 bits);
-    then [1, 5, 10, 10, 5, 1] = [1, 4, 6, 4, 1] ⊛ [1, 1] is computed as OpenCV's 5-tap
-    filter followed by the 2 × 2 block mean of ``INTER_AREA`` (also exact): the same
-    numbers for less work.
-    """
-    data = band.astype(np.float32, copy=False)
-    rows, cols = data.shape
-    n_out = rows // 2
-    if out is None:
-        out = np.empty((n_out, cols // 2), np.float32)
-    for j0 in range(0, n_out, _STRIP_ROWS):
-        j1 = min(j0 + _STRIP_ROWS, n_out)
-        s0, s1 = max(2 * j0 - 2, 0), min(2 * j1 + 2, rows)
-        if exact_sums:
-            smooth = cv2.sepFilter2D(data[s0:s1], cv2.CV_32F, _BINOMIAL_5, _BINOMIAL_5,
-                                     borderType=cv2.BORDER_REFLECT)[2 * j0 - s0:2 * j1 - s0]
-            dst = out[j0:j1]
-            block = cv2.resize(smooth, (cols // 2, j1 - j0), dst=dst,
-                               interpolation=cv2.INTER_AREA)
-            if block.ctypes.data != dst.ctypes.data:  # OpenCV did not write in place
-                dst[...] = block
-        else:
-            smooth = cv2.sepFilter2D(data[s0:s1], cv2.CV_32F, _BINOMIAL_6, _BINOMIAL_6,
-                                     anchor=(2, 2), borderType=cv2.BORDER_REFLECT)
-            out[j0:j1] = smooth[2 * j0 - s0:2 * j1 - s0:2, ::2]
-    return out
-
 
 def _level_power(data: np.ndarray, f_cut: float) -> int:
     """Order p of the level's filter cos^p(π f) (0 = no level): p = 3 on uint8, else 5."""
@@ -599,11 +529,40 @@ def reduce_band_limited(band: np.ndarray, q_phi: float, *, reuse_buffers: bool =
             halve_binomial6(data, out=halved, exact_sums=after_uint8_level)
         after_uint8_level = power == 3
         for axis, n in enumerate((rows, cols)):
-            k = np.arange(n // 2)
-            gains[axis] = (gains[axis][:n // 2] * np.cos(np.pi * k / (2.0 * n)) ** power
-                           / np.sqrt(2.0))
+            gains[axis] = gains[axis][:n // 2] * level_gain(n, power)
         data, f_cut = halved, 2.0 * f_cut
     return (band if data is band else data), gains[0], gains[1]
+
+
+def level1_allowed(shape: tuple[int, int], q_phi: float) -> bool:
+    """Whether the p = 5 level (:func:`~geosim.physics.pyramid.halve_binomial6`) of a band
+    of ``shape`` (rows, cols) may stand in for it at the cutoff 1 / ``q_phi`` (the first
+    level of :func:`reduce_band_limited` would be at least that good: even sides ≥ 16, the
+    kept coefficients in its lower half, the alias leak ≤ :data:`ALIAS_TOLERANCE`)."""
+    f_cut = 1.0 / q_phi
+    return (all(n % 2 == 0 and n >= 16 for n in shape) and 0.0 < f_cut < 0.25
+            and np.tan(np.pi * f_cut) ** 5 <= ALIAS_TOLERANCE)
+
+
+def reduce_from_level1(level1: np.ndarray, shape: tuple[int, int], q_phi: float, *,
+                       reuse_buffers: bool = False
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`reduce_band_limited` of a band of ``shape`` given only its p = 5 first level.
+
+    ``level1`` is ``halve_binomial6(band)`` (e.g. a tile's first overview, rounded to its
+    integer type: the rounding is the only difference from reducing the band itself); the
+    reduction goes on from it at twice the cutoff and the first level's gains
+    (:func:`~geosim.physics.pyramid.level_gain`) are multiplied in. The caller checks
+    :func:`level1_allowed` first.
+    """
+    rows, cols = shape
+    if level1.shape != (rows // 2, cols // 2):
+        raise ValueError(f"a first level of a {rows} × {cols} band is "
+                         f"{rows // 2} × {cols // 2}, got {level1.shape}")
+    reduced, gain_rows, gain_cols = reduce_band_limited(level1, q_phi / 2.0,
+                                                        reuse_buffers=reuse_buffers)
+    return (reduced, level_gain(rows, 5)[:gain_rows.size] * gain_rows,
+            level_gain(cols, 5)[:gain_cols.size] * gain_cols)
 
 
 # ----------------------------------------------------------------------- fast path
@@ -633,11 +592,17 @@ class SpectralDegrader:
         Compute the pyramid levels in this thread's reused scratch arrays
         (:mod:`geosim.scratch`), which stay allocated for the next image: for many
         images of one size (the tiles of a run); not for one-off large images.
+    level1_of
+        ``image`` is not the image but its p = 5 first pyramid level
+        (:func:`~geosim.physics.pyramid.halve_binomial6`, e.g. a tile's first overview)
+        and the image, all valid, is ``level1_of`` = (rows, cols) pixels: see
+        :func:`reduce_from_level1`. Needs :func:`level1_allowed` at ``q_min``.
     """
 
     def __init__(self, image: np.ndarray, *, phi: int = 10, q_min: float,
                  valid: np.ndarray | None = None, obscuration: float = 0.0,
-                 workers: int | None = None, reuse_buffers: bool = False) -> None:
+                 workers: int | None = None, reuse_buffers: bool = False,
+                 level1_of: tuple[int, int] | None = None) -> None:
         self.phi = _check_phi(phi)
         self.q_min = _check_q(q_min)
         self.obscuration = _check_obscuration(obscuration)
@@ -645,6 +610,17 @@ class SpectralDegrader:
         stack = _as_stack(arr)
         self.squeeze = arr.ndim == 2
         self.shape = stack.shape[1:]
+        self._level1_of = None if level1_of is None else (int(level1_of[0]),
+                                                          int(level1_of[1]))
+        if self._level1_of is not None:
+            if valid is not None:
+                raise ValueError("a first pyramid level stands in only for an all-valid "
+                                 "image: give valid=None")
+            if not level1_allowed(self._level1_of, self.q_min * self.phi):
+                raise ValueError(f"a first pyramid level cannot stand in for a "
+                                 f"{self._level1_of} image at Q = {self.q_min}, φ = "
+                                 f"{self.phi}: degrade the image itself")
+            self.shape = self._level1_of
         self.out_shape = _output_shape(self.shape, self.phi)
         valid_b = _check_valid(valid, self.shape)
         self.valid_out = (np.ones(self.out_shape, bool) if valid_b is None
@@ -672,8 +648,12 @@ class SpectralDegrader:
 
     def _truncated_dct(self, band: np.ndarray) -> np.ndarray:
         k_r, k_c = self.n_coef
-        reduced, gain_rows, gain_cols = reduce_band_limited(band, self.q_min * self.phi,
-                                                            reuse_buffers=self._reuse)
+        if self._level1_of is None:
+            reduced, gain_rows, gain_cols = reduce_band_limited(
+                band, self.q_min * self.phi, reuse_buffers=self._reuse)
+        else:
+            reduced, gain_rows, gain_cols = reduce_from_level1(
+                band, self._level1_of, self.q_min * self.phi, reuse_buffers=self._reuse)
         mine = reduced is not band  # a level of our own, not the caller's band: in place
         # row transforms, then column transforms of the k_c kept columns only
         partial = np.empty((reduced.shape[0], k_c), np.float32)
@@ -684,7 +664,8 @@ class SpectralDegrader:
                 overwrite_x=mine)[:, :k_c]
         coef = scipy.fft.dct(partial, type=2, norm="ortho", axis=0,
                              workers=self._workers)[:k_r]
-        if reduced is not band:  # coefficients of a pyramid level: divide its gains out
+        if reduced is not band or self._level1_of is not None:
+            # coefficients of a pyramid level: divide its gains out
             coef /= np.outer(gain_rows[:k_r], gain_cols[:k_c]).astype(np.float32)
         return coef
 
@@ -777,3 +758,33 @@ def degrade_array(image: np.ndarray, *, q: float, phi: int = 10,
                                obscuration=obscuration,
                                reuse_buffers=reuse_buffers).degrade(q)
     return (out[0] if arr.ndim == 2 else out), valid_out
+
+
+def degrade_level1(level1: np.ndarray, shape: tuple[int, int], *, q: float, phi: int = 10,
+                   obscuration: float = 0.0, reuse_buffers: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`degrade_array` (``"fast"``) of an all-valid image known only by its first level.
+
+    Parameters
+    ----------
+    level1
+        ``halve_binomial6`` of each band of the image (:mod:`geosim.physics.pyramid`),
+        bands-first ``(bands, rows // 2, cols // 2)`` or 2-D, in DN: e.g. a tile's first
+        overview (:mod:`geosim.io.overviews`), rounded to whole DN. The rounding (±0.5 DN at
+        0.1 m) reaches the output through the optics' passband only: ≈ 0.01 DN RMS at
+        Q = 4.34, φ = 10 (docs/degradation.md).
+    shape
+        (rows, cols) of the image itself.
+    q, phi, obscuration, reuse_buffers
+        As for :func:`degrade_array`; :func:`level1_allowed` must hold at ``q``.
+
+    Returns
+    -------
+    degraded, valid_out
+        As for :func:`degrade_array` (every output pixel valid).
+    """
+    q = _check_q(q)
+    degrader = SpectralDegrader(level1, phi=phi, q_min=q, obscuration=obscuration,
+                                reuse_buffers=reuse_buffers, level1_of=shape)
+    return degrader.degrade(q), degrader.valid_out
+

@@ -42,7 +42,7 @@ from geosim.degrade.calibrate import (
     quantization_lv,
     solve_q,
 )
-from geosim.degrade.core import METHODS, degrade_array, to_dtype
+from geosim.degrade.core import METHODS, degrade_array, degrade_level1, level1_allowed, to_dtype
 from geosim.degrade.plot import plot_calibration
 from geosim.engine import parallel_map
 from geosim.errors import CalibrationError, ConfigError, InputFileError, RasterError
@@ -53,6 +53,7 @@ from geosim.io.raster import (
     image_band_indexes,
     open_raster,
     provenance_tags,
+    read_binomial_level1,
     read_raster,
     read_window,
     write_geotiff,
@@ -70,6 +71,10 @@ N_CURVE_SAMPLES = 16
 BLOCK_SAT_PX = 300
 MARGIN_SAT_PX = 24
 _GREY_CHUNK_ROWS = 512
+#: Tag of a degraded tile: which resolution of the UAV tile was read (provenance only).
+DEGRADE_READ_TAG = "GEOSIM_DEGRADE_READ"
+READ_FULL = "full resolution"
+READ_LEVEL1 = "first overview (the binomial level 1 of the tile)"
 
 LV_DEFINITION = (
     "variance (1/N) of the paper's Laplacian [[1/6,2/3,1/6],[2/3,-10/3,2/3],[1/6,2/3,1/6]] "
@@ -372,7 +377,7 @@ def degraded_transform(tile_transform: Affine, phi: int) -> Affine:
 def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
                  method: str = "fast", obscuration: float = 0.0,
                  uav_gsd_m: float | None = None, tags: dict[str, str] | None = None,
-                 ) -> dict[str, Any]:
+                 trust_first_overview: bool = False) -> dict[str, Any]:
     """Degrade one UAV tile GeoTIFF to a satellite-resolution GeoTIFF.
 
     Parameters
@@ -389,11 +394,18 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
         Expected tile pixel size in metres (checked when given).
     tags
         Extra GeoTIFF tags (provenance).
+    trust_first_overview
+        The tile is known to be the file ``geosim tile`` wrote (its manifest entry vouches
+        for it), so a tagged binomial first overview (:mod:`geosim.io.overviews`) is that
+        of its pixels: the fast method then reads it instead of the full resolution where
+        it can stand in (:func:`~geosim.degrade.core.level1_allowed`). Not for a tile
+        edited in place since (its overviews would be stale).
 
     Returns
     -------
     dict
-        ``shape`` (rows, cols) and ``valid_fraction`` of the output.
+        ``shape`` (rows, cols) and ``valid_fraction`` of the output, and ``read_from``
+        (:data:`READ_FULL` or :data:`READ_LEVEL1`).
     """
     from geosim.prepare.reproject import warp_threads
 
@@ -405,25 +417,41 @@ def degrade_tile(src: str | Path, dst: str | Path, *, q: float, phi: int,
     # fault in); nothing below keeps them past this call.
     with rasterio.Env(GDAL_NUM_THREADS=str(warp_threads()),
                       GDAL_TIFF_INTERNAL_MASK_TO_8BIT=False):
-        tile = read_raster(src, what="UAV tile", reuse_buffers=True)
-    rows, cols = tile.shape
-    if uav_gsd_m is not None and not math.isclose(abs(tile.transform.a), uav_gsd_m,
+        # a tile geosim wrote whole and valid carries the degradation's own first pyramid
+        # level as its first overview: a quarter of the pixels to decode (the fast method
+        # only; its rounding to whole DN is the one difference, docs/degradation.md)
+        first = None
+        if method == "fast" and trust_first_overview:
+            first = read_binomial_level1(src, what="UAV tile", reuse_buffers=True,
+                                         usable=lambda shape: level1_allowed(shape, q * phi))
+        tile = (read_raster(src, what="UAV tile", reuse_buffers=True) if first is None
+                else first.level)
+    (rows, cols), transform = ((tile.shape, tile.transform) if first is None
+                               else (first.shape, first.transform))
+    if uav_gsd_m is not None and not math.isclose(abs(transform.a), uav_gsd_m,
                                                    rel_tol=1e-6):
-        raise RasterError(f"{src}: pixel size {abs(tile.transform.a)} m is not "
+        raise RasterError(f"{src}: pixel size {abs(transform.a)} m is not "
                           f"parameters.uav_gsd_m = {uav_gsd_m} m; the tiles come from "
                           "another run: re-run 'geosim tile'")
     if rows < phi or cols < phi:
         raise RasterError(f"{src}: {cols} × {rows} px is smaller than one "
                           f"satellite pixel ({phi} × {phi} px)")
-    degraded, valid_out = degrade_array(tile.array, q=q, phi=phi, valid=tile.valid,
-                                        method=method, obscuration=obscuration,
-                                        reuse_buffers=True)
+    if first is None:
+        degraded, valid_out = degrade_array(tile.array, q=q, phi=phi, valid=tile.valid,
+                                            method=method, obscuration=obscuration,
+                                            reuse_buffers=True)
+    else:
+        degraded, valid_out = degrade_level1(tile.array, (rows, cols), q=q, phi=phi,
+                                             obscuration=obscuration, reuse_buffers=True)
     out = to_dtype(degraded, tile.array.dtype)
     names = list(tile.band_names)
-    write_geotiff(dst, out, transform=degraded_transform(tile.transform, phi), crs=tile.crs,
+    read_from = READ_FULL if first is None else READ_LEVEL1
+    write_geotiff(dst, out, transform=degraded_transform(transform, phi), crs=tile.crs,
                   nodata=tile.nodata, mask=valid_out,
-                  band_descriptions=names if all(names) else None, tags=tags)
-    return {"shape": list(out.shape[1:]), "valid_fraction": float(valid_out.mean())}
+                  band_descriptions=names if all(names) else None,
+                  tags={**(tags or {}), DEGRADE_READ_TAG: read_from})
+    return {"shape": list(out.shape[1:]), "valid_fraction": float(valid_out.mean()),
+            "read_from": read_from}
 
 
 @dataclass(frozen=True)
@@ -452,7 +480,9 @@ def degrade_tile_task(task: DegradeTileTask) -> dict[str, Any]:
                                                         task.tags):
         return {"skipped": True}
     done = degrade_tile(task.src, task.dst, q=task.q, phi=task.phi, method=task.method,
-                        obscuration=task.obscuration, uav_gsd_m=task.uav_gsd_m, tags=task.tags)
+                        obscuration=task.obscuration, uav_gsd_m=task.uav_gsd_m, tags=task.tags,
+                        trust_first_overview=task.run_dir is not None
+                        and manifest.vouched_for(task.run_dir, task.src))
     if task.run_dir is not None:
         manifest.record_output(task.run_dir, task.dst, [task.src], task.tags)
     return {**done, "skipped": False}
@@ -522,8 +552,9 @@ def run_degrade(site: SiteConfig, out: RunPath, q: float | None = None, *,
         tasks.append(DegradeTileTask(str(src), str(dst), q, p.phi, method, obscuration,
                                      p.uav_gsd_m, tags, str(run.root)))
         outputs.append(run.rel(dst))
-    n_skipped = sum(r["skipped"] for r in parallel_map(degrade_tile_task, tasks,
-                                                         desc="degrade"))
+    results = list(parallel_map(degrade_tile_task, tasks, desc="degrade"))
+    n_skipped = sum(r["skipped"] for r in results)
+    n_level1 = sum(r.get("read_from") == READ_LEVEL1 for r in results)
     for fid, _src in jobs:
         counts[fid] += 1
     seconds = time.perf_counter() - start
@@ -536,4 +567,6 @@ def run_degrade(site: SiteConfig, out: RunPath, q: float | None = None, *,
         record={"q": q, "q_source": q_source, "method": method, "tiles": len(jobs),
                 "tiles_per_flight": counts, "out": run.rel(run.degraded_dir),
                 "seconds_per_tile": round(seconds / len(jobs), 3),
-                "skipped_current": n_skipped})
+                "skipped_current": n_skipped,
+                # tiles degraded from their binomial first overview (the rest: full resolution)
+                "read_from_first_overview": n_level1})

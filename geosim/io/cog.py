@@ -42,7 +42,12 @@ import rasterio.shutil
 from rasterio.errors import NotGeoreferencedWarning
 
 from geosim.io.atomic import atomic_path
-from geosim.io.overviews import average_overviews
+from geosim.io.overviews import (
+    LEVEL1_BINOMIAL,
+    LEVEL1_TAG,
+    average_overviews,
+    binomial_level1_applies,
+)
 
 #: Internal tile size (pixels) of every COG geosim writes; overviews are built down to it.
 COG_BLOCK_PX = 256
@@ -108,11 +113,22 @@ class WholeRaster:
         ``(rows, cols)`` bool mask (True = valid) written as the internal mask.
     fill
         Value of overview pixels with no valid pixel under them (the nodata value, or 0).
+    binomial_level1
+        Make the first overview level the binomial one where it applies (an all-valid 8-bit
+        raster of even sides: :mod:`geosim.io.overviews`), and tag the raster so
+        (:data:`~geosim.io.overviews.LEVEL1_TAG`): the UAV tiles, which ``geosim degrade``
+        then reads at that level.
     """
 
     array: np.ndarray
     valid: np.ndarray
     fill: float = 0
+    binomial_level1: bool = False
+
+    def binomial_level1_written(self, block_px: int) -> bool:
+        """Whether the first overview level written for ``block_px`` blocks is binomial."""
+        return self.binomial_level1 and binomial_level1_applies(self.array, self.valid,
+                                                                block_px)
 
 
 def _overview_source(scratch: Path, whole: WholeRaster, block_px: int) -> Path | None:
@@ -125,7 +141,8 @@ def _overview_source(scratch: Path, whole: WholeRaster, block_px: int) -> Path |
     added, so the COG copy (``OVERVIEWS=FORCE_USE_EXISTING``) keeps everything it would have
     kept from the scratch.
     """
-    levels = average_overviews(whole.array, whole.valid, block_px, fill=whole.fill)
+    levels = average_overviews(whole.array, whole.valid, block_px, fill=whole.fill,
+                               binomial_level1=whole.binomial_level1)
     if not levels:
         return None
     names = []
@@ -184,10 +201,12 @@ def cog_writer(path: str | os.PathLike[str], profile: Mapping[str, Any], *,
             env = (rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True) if internal_mask
                    else contextlib.nullcontext())
             scratch_profile = {**dict(profile), **scratch_options(profile)}
-            with env, rasterio.open(scratch, "w", **scratch_profile) as dst:
-                yield dst
             overrides = {k.upper(): v for k, v in (cog_overrides or {}).items()}
             block_px = int(overrides.get("BLOCKSIZE", COG_BLOCK_PX))
+            with env, rasterio.open(scratch, "w", **scratch_profile) as dst:
+                yield dst
+                if whole is not None and whole.binomial_level1_written(block_px):
+                    dst.update_tags(**{LEVEL1_TAG: LEVEL1_BINOMIAL})
             vrt = None if whole is None else _overview_source(scratch, whole, block_px)
             if vrt is None:
                 copy_as_cog(scratch, tmp, **overrides)

@@ -20,6 +20,16 @@ Each level is computed from the previous level's unrounded sums (pixel × valid,
 valid), so no rounding accumulates down the pyramid and a level-k pixel weighs every valid
 base pixel alike. GDAL's levels, each made from the previous rounded level, drift by up to
 1.3 DN on a whole raster and by tens of DN along the edge of a partial raster's data.
+
+One exception, asked for by the writer (``binomial_level1``, the UAV tiles): the *first*
+level of an all-valid 8-bit raster of even sides is the binomial level
+``[1, 5, 10, 10, 5, 1]/32`` per axis on each 2 × 2 block
+(:func:`geosim.physics.pyramid.halve_binomial6_exact_uint8`, exact in float32, rounded half
+up) instead of the 2 × 2 mean, and the raster carries the tag :data:`LEVEL1_TAG`. It is the
+first level of the degradation's band-limited pyramid, so ``geosim degrade`` reads it (a
+quarter of the pixels to decode) instead of full resolution (docs/degradation.md); for
+display it is a slightly softer, less aliased 2× view. Deeper levels are area means of its
+unrounded values, as above.
 """
 
 from __future__ import annotations
@@ -28,6 +38,13 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from geosim.physics.pyramid import halve_binomial6_exact_uint8
+
+#: Metadata tag of a raster whose first overview level is the binomial level (its value
+#: :data:`LEVEL1_BINOMIAL`); absent otherwise.
+LEVEL1_TAG = "GEOSIM_OVERVIEW_LEVEL1"
+LEVEL1_BINOMIAL = "binomial [1 5 10 10 5 1]/32 per axis on 2x2 blocks, rounded half up"
 
 
 @dataclass(frozen=True)
@@ -72,8 +89,19 @@ def _to_dtype(mean: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return mean.astype(dtype)
 
 
+def binomial_level1_applies(array: np.ndarray, valid: np.ndarray | None, block_px: int
+                            ) -> bool:
+    """Whether :func:`average_overviews` makes the first level of ``array`` (bands, rows,
+    cols) binomial when asked: 8-bit, every pixel valid, both sides even and ≥ 16, and at
+    least one overview level (whose size is then exactly half)."""
+    rows, cols = array.shape[1:]
+    return (array.dtype == np.uint8 and rows % 2 == 0 and cols % 2 == 0
+            and min(rows, cols) >= 16 and bool(overview_shapes(rows, cols, block_px))
+            and (valid is None or bool(valid.all())))
+
+
 def average_overviews(array: np.ndarray, valid: np.ndarray | None, block_px: int, *,
-                      fill: float = 0) -> list[OverviewLevel]:
+                      fill: float = 0, binomial_level1: bool = False) -> list[OverviewLevel]:
     """Masked-average overview levels of a ``(bands, rows, cols)`` array.
 
     Parameters
@@ -86,6 +114,9 @@ def average_overviews(array: np.ndarray, valid: np.ndarray | None, block_px: int
         The COG's internal tile size in pixels (sets how many levels there are).
     fill
         Value of overview pixels with no valid pixel under them (nodata, or 0).
+    binomial_level1
+        Make the first level the binomial one where :func:`binomial_level1_applies`
+        (module docstring); otherwise ignored.
 
     Returns
     -------
@@ -106,12 +137,17 @@ def average_overviews(array: np.ndarray, valid: np.ndarray | None, block_px: int
     out = [OverviewLevel(np.empty((array.shape[0], *shape), array.dtype),
                          np.ones(shape, bool) if w is None else w > 0)
            for shape, w in zip(shapes, weights, strict=True)]
+    binomial = binomial_level1 and binomial_level1_applies(array, valid, block_px)
     for b, band in enumerate(array):
-        plane = band.astype(np.float32)
-        if not all_valid:
-            plane *= valid
-        for level, w in zip(out, weights, strict=True):
-            plane = _area_mean(plane, level.valid.shape)
+        if binomial:  # the first level from the 8-bit band itself, no float copy of it
+            plane, first = halve_binomial6_exact_uint8(band), 1
+        else:
+            plane, first = band.astype(np.float32), 0
+            if not all_valid:
+                plane *= valid
+        for i, (level, w) in enumerate(zip(out, weights, strict=True)):
+            if i >= first:
+                plane = _area_mean(plane, level.valid.shape)
             # no valid pixel under it: the fill value (rounds to itself)
             mean = plane if w is None else np.divide(plane, w, out=np.full_like(plane, fill),
                                                      where=level.valid)

@@ -13,7 +13,7 @@ import hashlib
 import json
 import os
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +28,7 @@ from rasterio.windows import Window
 
 from geosim.errors import InputFileError, RasterError
 from geosim.io.cog import WholeRaster, cog_writer
+from geosim.io.overviews import LEVEL1_BINOMIAL, LEVEL1_TAG
 from geosim.io.paths import relative_if_inside
 from geosim.scratch import scratch_array
 
@@ -243,6 +244,56 @@ def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
         return read_window(ds, window, bands=bands, max_bands=max_bands,
                            out_dtype=out_dtype, boundless=boundless, path=path,
                            out=out, valid_out=valid_out)
+
+
+@dataclass(frozen=True)
+class BinomialLevel1:
+    """A raster's binomial first overview level (:mod:`geosim.io.overviews`), read in place
+    of its full resolution.
+
+    Attributes
+    ----------
+    level
+        The level's bands and mask (every pixel valid), with its own transform.
+    shape
+        ``(rows, cols)`` of the full resolution.
+    transform
+        Pixel-corner -> map affine of the full resolution.
+    """
+
+    level: RasterData
+    shape: tuple[int, int]
+    transform: Affine
+
+
+def read_binomial_level1(path: str | os.PathLike[str], *, what: str = "raster",
+                         usable: Callable[[tuple[int, int]], bool] | None = None,
+                         reuse_buffers: bool = False) -> BinomialLevel1 | None:
+    """The binomial first overview level of a raster geosim wrote, or None.
+
+    None where the raster does not carry :data:`~geosim.io.overviews.LEVEL1_TAG` (written
+    by another program or version, partial, odd-sized or not 8-bit), where its first
+    overview is not exactly half its size or has an invalid pixel, or where
+    ``usable(shape)`` (full resolution, rows and cols) is False; the header alone is read
+    before deciding. ``reuse_buffers`` as for :func:`read_raster`.
+    """
+    with open_raster(path, what=what) as ds:
+        if ds.tags().get(LEVEL1_TAG) != LEVEL1_BINOMIAL or ds.overviews(1)[:1] != [2]:
+            return None
+        shape, transform = (ds.height, ds.width), ds.transform
+    if usable is not None and not usable(shape):
+        return None
+    with naming_read_failures(path), rasterio.open(path, overview_level=0) as ds:
+        if (ds.height, ds.width) != (shape[0] // 2, shape[1] // 2):
+            return None
+        out = valid_out = None
+        if reuse_buffers:
+            idx = image_band_indexes(ds)
+            out = scratch_array("read_raster.level1", (len(idx), ds.height, ds.width),
+                                ds.dtypes[idx[0] - 1])
+            valid_out = scratch_array("read_raster.level1_valid", (ds.height, ds.width), bool)
+        level = read_window(ds, path=path, out=out, valid_out=valid_out)
+    return BinomialLevel1(level, shape, transform) if level.valid.all() else None
 
 
 def geotiff_profile(*, width: int, height: int, count: int, dtype: str | np.dtype,

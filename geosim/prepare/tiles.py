@@ -13,6 +13,7 @@ at least in part is kept, with its mask (pixels outside the data are masked).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -139,13 +140,33 @@ def write_tile(reader: Any, task: WarpTileTask, dst_path: str, img: np.ndarray,
                valid: np.ndarray) -> None:
     """Write a read tile as the task's COG at ``dst_path`` (the reader gives band count,
     type, CRS, descriptions and colour interpretation)."""
+    write_tile_array(dst_path, img, valid, transform=task.tile.transform, crs=reader.crs,
+                     band_descriptions=reader.descriptions, tags=task.tags,
+                     cog_overrides=TILE_COMPRESSION_OPTIONS[task.compression],
+                     colorinterp=reader.colorinterp)
+
+
+def write_tile_array(dst_path: str | os.PathLike[str], img: np.ndarray, valid: np.ndarray, *,
+                     transform: Affine, crs: Any,
+                     band_descriptions: Sequence[str | None] | None = None,
+                     tags: Mapping[str, str] | None = None,
+                     cog_overrides: Mapping[str, Any] | None = None,
+                     colorinterp: Sequence[Any] | None = None) -> None:
+    """Write a UAV tile ``(bands, rows, cols)`` with its valid mask as ``geosim tile`` does.
+
+    A COG with an internal mask whose overviews are computed in memory, the first of them
+    the binomial level the degradation reads (:mod:`geosim.io.overviews`) where the tile is
+    whole and 8-bit; ``cog_overrides``: the codec
+    (:data:`~geosim.io.cog.TILE_COMPRESSION_OPTIONS`).
+    """
     height, width = valid.shape
-    with create_geotiff(dst_path, width=width, height=height, count=reader.count,
-                        dtype=reader.dtype, crs=reader.crs, transform=task.tile.transform,
-                        band_descriptions=reader.descriptions, tags=task.tags,
-                        internal_mask=True, whole=WholeRaster(img, valid),
-                        cog_overrides=TILE_COMPRESSION_OPTIONS[task.compression]) as dst:
-        dst.colorinterp = reader.colorinterp
+    with create_geotiff(dst_path, width=width, height=height, count=img.shape[0],
+                        dtype=img.dtype, crs=crs, transform=transform,
+                        band_descriptions=band_descriptions, tags=tags,
+                        internal_mask=True, whole=WholeRaster(img, valid, binomial_level1=True),
+                        cog_overrides=cog_overrides) as dst:
+        if colorinterp is not None:
+            dst.colorinterp = colorinterp
         dst.write(img)
         dst.write_mask(np.where(valid, 255, 0).astype(np.uint8))
 
