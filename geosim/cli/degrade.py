@@ -19,7 +19,8 @@ from geosim.cli.common import OUT_OPTION, SITE_ARG, engine_options, run_steps
 @click.option("--method", type=click.Choice(["fast", "reference"]), default="fast",
               show_default=True,
               help="'reference' is literally the paper (full-resolution blur, then "
-                   "cv2.resize bicubic); 'fast' gives the same numbers within 1 DN.")
+                   "cv2.resize bicubic); 'fast' gives the same numbers within 1 DN, reading "
+                   "whole tiles at their first overview (the pyramid level it needs).")
 def degrade(site_file: Path, out: Path, q: float | None, method: str) -> None:
     """Degrade every UAV tile to the satellite grid (needs 'geosim tile').
 
