@@ -28,8 +28,8 @@ level of an all-valid 8-bit raster of even sides is the binomial level
 up) instead of the 2 × 2 mean, and the raster carries the tag :data:`LEVEL1_TAG`. It is the
 first level of the degradation's band-limited pyramid, so ``geosim degrade`` reads it (a
 quarter of the pixels to decode) instead of full resolution (docs/degradation.md); for
-display it is a slightly softer, less aliased 2× view. Deeper levels are area means of its
-unrounded values, as above.
+display it is a softer, less aliased 2× view (transfer cos⁵(πf) instead of cos(πf)).
+Deeper levels are area means of its unrounded values, as above.
 """
 
 from __future__ import annotations
