@@ -36,6 +36,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_augment import _export_revision  # noqa: E402
 from bench_degrade import make_tile  # noqa: E402
 
+from geosim.io.overviews import LEVEL1_TAG  # noqa: E402
+
 OUT = ROOT / "benchmarks" / "results" / "bench_tile_write.json"
 
 _CHILD = """
@@ -70,7 +72,7 @@ def child(src: Path, aligned: Path, dst: Path, transform: Affine) -> float:
 
 
 #: Tags one tree may write and the other not: the binomial first overview's (28 Nov).
-OPTIONAL_TAGS = {"GEOSIM_OVERVIEW_LEVEL1"}
+OPTIONAL_TAGS = {LEVEL1_TAG}
 
 
 def same_tile(a: Path, b: Path) -> list[int]:

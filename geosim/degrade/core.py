@@ -63,10 +63,10 @@ import scipy.fft
 
 from geosim.physics.otf import optics_otf
 from geosim.physics.pyramid import (
-    STRIP_ROWS,
     halve_binomial4_uint8,
     halve_binomial6,
     level_gain,
+    row_strips,
 )
 from geosim.scratch import scratch_array
 
@@ -423,10 +423,9 @@ class InvalidFill:
         if self.even and band.dtype == np.uint8:
             rows, cols = band.shape
             out = np.empty((rows // 2, cols // 2), np.float32)
-            for j0 in range(0, rows // 2, STRIP_ROWS):  # strips whose uint16 stay in cache
-                j1 = min(j0 + STRIP_ROWS, rows // 2)
-                sums4 = np.multiply(band[2 * j0:2 * j1], self._mask4[2 * j0:2 * j1],
-                                    dtype=np.uint16)
+            # strips whose uint16 stay in cache
+            for j0, j1, s0, s1 in row_strips(rows // 2, rows, reach=0):
+                sums4 = np.multiply(band[s0:s1], self._mask4[s0:s1], dtype=np.uint16)
                 sums = cv2.resize(sums4, (cols // 2, j1 - j0), interpolation=cv2.INTER_AREA)
                 np.multiply(sums, np.float32(0.25), out=out[j0:j1])
             return out
@@ -465,12 +464,17 @@ class InvalidFill:
 #: Largest relative leak of an alias into a kept DCT coefficient a pyramid level may add.
 ALIAS_TOLERANCE = 5e-4
 
-def _level_power(data: np.ndarray, f_cut: float) -> int:
+def _halvable(shape: tuple[int, ...]) -> bool:
+    """Whether a band of ``shape`` can take a pyramid level: even sides, at least 16 px."""
+    return all(n % 2 == 0 and n >= 16 for n in shape)
+
+
+def _level_power(dtype: np.dtype | type, f_cut: float) -> int:
     """Order p of the level's filter cos^p(π f) (0 = no level): p = 3 on uint8, else 5."""
     if not 0.0 < f_cut < 0.25:  # kept coefficients must lie in the level's lower half
         return 0
     leak = np.tan(np.pi * f_cut)
-    if data.dtype == np.uint8 and leak ** 3 <= ALIAS_TOLERANCE:
+    if dtype == np.uint8 and leak ** 3 <= ALIAS_TOLERANCE:
         return 3
     if leak ** 5 <= ALIAS_TOLERANCE:
         return 5
@@ -515,8 +519,8 @@ def reduce_band_limited(band: np.ndarray, q_phi: float, *, reuse_buffers: bool =
     f_cut = 1.0 / q_phi
     level = 0
     after_uint8_level = False
-    while all(n % 2 == 0 and n >= 16 for n in data.shape):
-        power = _level_power(data, f_cut)
+    while _halvable(data.shape):
+        power = _level_power(data.dtype, f_cut)
         if power == 0:
             break
         rows, cols = data.shape
@@ -539,9 +543,7 @@ def level1_allowed(shape: tuple[int, int], q_phi: float) -> bool:
     of ``shape`` (rows, cols) may stand in for it at the cutoff 1 / ``q_phi`` (the first
     level of :func:`reduce_band_limited` would be at least that good: even sides ≥ 16, the
     kept coefficients in its lower half, the alias leak ≤ :data:`ALIAS_TOLERANCE`)."""
-    f_cut = 1.0 / q_phi
-    return (all(n % 2 == 0 and n >= 16 for n in shape) and 0.0 < f_cut < 0.25
-            and np.tan(np.pi * f_cut) ** 5 <= ALIAS_TOLERANCE)
+    return _halvable(shape) and _level_power(np.float32, 1.0 / q_phi) == 5
 
 
 def reduce_from_level1(level1: np.ndarray, shape: tuple[int, int], q_phi: float, *,

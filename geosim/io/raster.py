@@ -237,13 +237,20 @@ def read_raster(path: str | os.PathLike[str], *, what: str = "raster",
         if reuse_buffers and window is None:
             idx = list(bands) if bands is not None else image_band_indexes(ds)
             idx = idx[:max_bands] if max_bands is not None else idx
-            dtype = out_dtype if out_dtype is not None else ds.dtypes[idx[0] - 1]
-            out = scratch_array("read_raster.image", (len(idx), ds.height, ds.width),
-                                dtype)
-            valid_out = scratch_array("read_raster.valid", (ds.height, ds.width), bool)
+            out, valid_out = _reused_buffers(ds, "read_raster", len(idx),
+                                             out_dtype if out_dtype is not None
+                                             else ds.dtypes[idx[0] - 1])
         return read_window(ds, window, bands=bands, max_bands=max_bands,
                            out_dtype=out_dtype, boundless=boundless, path=path,
                            out=out, valid_out=valid_out)
+
+
+def _reused_buffers(ds: rasterio.DatasetReader, key: str, n_bands: int, dtype: Any
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """This thread's reused arrays (:mod:`geosim.scratch`) to decode a whole dataset into:
+    the ``(n_bands, rows, cols)`` image of ``dtype`` and the bool mask, named by ``key``."""
+    return (scratch_array(f"{key}.image", (n_bands, ds.height, ds.width), dtype),
+            scratch_array(f"{key}.valid", (ds.height, ds.width), bool))
 
 
 @dataclass(frozen=True)
@@ -289,9 +296,8 @@ def read_binomial_level1(path: str | os.PathLike[str], *, what: str = "raster",
         out = valid_out = None
         if reuse_buffers:
             idx = image_band_indexes(ds)
-            out = scratch_array("read_raster.level1", (len(idx), ds.height, ds.width),
-                                ds.dtypes[idx[0] - 1])
-            valid_out = scratch_array("read_raster.level1_valid", (ds.height, ds.width), bool)
+            out, valid_out = _reused_buffers(ds, "read_raster.level1", len(idx),
+                                             ds.dtypes[idx[0] - 1])
         level = read_window(ds, path=path, out=out, valid_out=valid_out)
     return BinomialLevel1(level, shape, transform) if level.valid.all() else None
 

@@ -13,6 +13,8 @@ degradation can read it from the tile instead of decoding full resolution.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import cv2
 import numpy as np
 
@@ -25,6 +27,16 @@ _TAPS_121 = np.array([1, 2, 1], np.float32)
 _TAPS_121_X4 = np.array([4, 8, 4], np.float32)
 #: Output rows per strip of the pyramid levels (their temporaries stay in cache).
 STRIP_ROWS = 64
+
+
+def row_strips(n_out: int, rows: int, reach: int) -> Iterator[tuple[int, int, int, int]]:
+    """The strips of a halving level of a ``rows``-row band: output rows ``j0:j1``
+    (:data:`STRIP_ROWS` at a time) and the input rows ``s0:s1`` they need — their 2 × 2
+    blocks and the ``reach`` rows above and below that a filter reads, clipped to the band
+    (so only the band's own edges are reflected)."""
+    for j0 in range(0, n_out, STRIP_ROWS):
+        j1 = min(j0 + STRIP_ROWS, n_out)
+        yield j0, j1, max(2 * j0 - reach, 0), min(2 * j1 + reach, rows)
 
 
 def halve_binomial4_uint8(band: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -44,9 +56,7 @@ def halve_binomial4_uint8(band: np.ndarray, out: np.ndarray | None = None) -> np
     n_out = rows // 2
     if out is None:
         out = np.empty((n_out, cols // 2), np.float32)
-    for j0 in range(0, n_out, STRIP_ROWS):
-        j1 = min(j0 + STRIP_ROWS, n_out)
-        s0, s1 = max(2 * j0 - 1, 0), min(2 * j1 + 1, rows)
+    for j0, j1, s0, s1 in row_strips(n_out, rows, reach=1):
         sums4 = cv2.sepFilter2D(band[s0:s1], cv2.CV_16S, _TAPS_121, _TAPS_121_X4,
                                 borderType=cv2.BORDER_REFLECT)[2 * j0 - s0:2 * j1 - s0]
         block = cv2.resize(sums4, (cols // 2, j1 - j0), interpolation=cv2.INTER_AREA)
@@ -74,9 +84,7 @@ def halve_binomial6(band: np.ndarray, out: np.ndarray | None = None, *,
     n_out = rows // 2
     if out is None:
         out = np.empty((n_out, cols // 2), np.float32)
-    for j0 in range(0, n_out, STRIP_ROWS):
-        j1 = min(j0 + STRIP_ROWS, n_out)
-        s0, s1 = max(2 * j0 - 2, 0), min(2 * j1 + 2, rows)
+    for j0, j1, s0, s1 in row_strips(n_out, rows, reach=2):
         if exact_sums:
             smooth = cv2.sepFilter2D(data[s0:s1], cv2.CV_32F, _BINOMIAL_5, _BINOMIAL_5,
                                      borderType=cv2.BORDER_REFLECT)[2 * j0 - s0:2 * j1 - s0]
