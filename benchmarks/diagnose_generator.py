@@ -244,16 +244,22 @@ def convolve(img: np.ndarray, kernel: np.ndarray) -> np.ndarray:
                                   borderType=cv2.BORDER_REFLECT) for b in img]).astype(float)
 
 
+def box_kernel_1d(width_fine_px: float) -> np.ndarray:
+    """A box ``width_fine_px`` fine pixels wide, centred on a fine pixel: each weight is
+    the overlap of its fine pixel [j - 1/2, j + 1/2] with [-w/2, w/2], normalised. Odd
+    length, so that ``cv2.filter2D`` (anchor at the middle) does not move the image."""
+    half = width_fine_px / 2.0
+    j = np.arange(-int(np.ceil(half + 0.5)), int(np.ceil(half + 0.5)) + 1, dtype=float)
+    k = np.clip(np.minimum(j + 0.5, half) - np.maximum(j - 0.5, -half), 0.0, None)
+    k = k[np.argmax(k > 0):len(k) - np.argmax(k[::-1] > 0)]
+    return k / k.sum()
+
+
 def detector_box(img: np.ndarray, pitch_px: float) -> np.ndarray:
-    """Pixel-aperture integration: a box pitch_px product pixels wide on the fine grid."""
-    w = pitch_px * PHI
-    n = int(np.floor(w))
-    frac = (w - n) / 2.0
-    k1 = np.ones(n + 2)
-    k1[0] = k1[-1] = frac
-    if frac == 0:
-        k1 = k1[1:-1]
-    k1 /= k1.sum()
+    """Pixel-aperture integration: a box pitch_px product pixels wide on the fine grid,
+    centred (before 29 Nov 2026 an even-length kernel, for floor(10 pitch_px) even, moved
+    the image by half a fine pixel, 0.05 product px: an unrecorded shift)."""
+    k1 = box_kernel_1d(pitch_px * PHI)
     return convolve(img, np.outer(k1, k1))
 
 
@@ -337,20 +343,21 @@ def luma(img: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- cases
-# Splits by seed. Round 20 (this one): the validation half is seeds 1640-1671, drawn only
-# for round 20's final report; every seed of 1000-1639 is development (1000-1063: round 1's
+# Splits by seed. Round 21 (this one): the validation half is seeds 1672-1703, drawn only
+# for round 21's final report; every seed of 1000-1671 is development (1000-1063: round 1's
 # two halves, seen while tuning; odd 1065-1127: round 2's validation half; even 1064-1126:
 # round 3's validation half; 1128-1159: round 4's; 1160-1191: round 5's; 1192-1223: round
 # 6's; 1224-1255: round 7's; 1256-1287: round 8's; 1288-1319: round 9's; 1320-1351: round
 # 10's; 1352-1383: round 11's; 1384-1415: round 12's; 1416-1447: round 13's; 1448-1479:
 # round 14's; 1480-1511: round 15's; 1512-1543: round 16's; 1544-1575: round 17's;
-# 1576-1607: round 18's; 1608-1639: round 19's, each seen in its round's final report).
-VALIDATION_FIRST_SEED = 1640
-VALIDATION_LAST_SEED = 1671
+# 1576-1607: round 18's; 1608-1639: round 19's; 1640-1671: round 20's, each seen in its
+# round's final report).
+VALIDATION_FIRST_SEED = 1672
+VALIDATION_LAST_SEED = 1703
 
 
 def is_validation_seed(seed: int) -> bool:
-    """Whether ``seed`` belongs to the (round 20) validation half."""
+    """Whether ``seed`` belongs to the (round 21) validation half."""
     return VALIDATION_FIRST_SEED <= seed <= VALIDATION_LAST_SEED
 
 
@@ -461,9 +468,13 @@ def draw_params(rng: np.random.Generator, name: str) -> dict[str, Any]:
 
 def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
            rng: np.random.Generator, *, margin_px: int,
-           variant: dict[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
+           variant: dict[str, Any] | None = None, noise_free: bool = False
+           ) -> tuple[np.ndarray, np.ndarray]:
     """(uav fine image, real product) for the window inside ``margin_px`` product pixels;
-    ``variant``: implementation choices (:func:`draw_variant`; None: the default ones)."""
+    ``variant``: implementation choices (:func:`draw_variant`; None: the default ones).
+    ``noise_free``: the product as the optics and radiometry make it, in float DN, before
+    noise, whole DN and JPEG (for the ideal observer, ``diagnose_ideal.py``); the random
+    draws before the noise (moved objects) are the same as without it."""
     v = {**DEFAULT_VARIANT, **(variant or {})}
     n_fine = ground.shape[-1]
     m = margin_px * PHI
@@ -509,6 +520,10 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
                + np.asarray(p["path_radiance_dn"])[:, None, None])
     if "colour_response" in truth:
         sat = np.asarray(truth["colour_response"]["gain"])[:, None, None] * sat
+    uav = uav_ground[:, m:-m, m:-m]
+    uav = np.clip(np.rint(uav), 0, 255).astype(np.float32)
+    if noise_free:
+        return uav, sat[:, margin_px:-margin_px, margin_px:-margin_px]
     if "sensor_noise" in truth:
         p = truth["sensor_noise"]
         sat = poisson_gaussian(sat, p["gain_dn"], p["read_var_dn2"], rng)
@@ -517,9 +532,7 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
         quality = truth["compression"]["quality"]
         sat = (jpeg_opencv_422(sat, quality) if v["jpeg"] == "opencv_422"
                else jpeg_pillow(sat, quality, subsampling=0 if v["jpeg"] == "pillow_444" else -1))
-    sat = sat[:, margin_px:-margin_px, margin_px:-margin_px]
-    uav = uav_ground[:, m:-m, m:-m]
-    return np.clip(np.rint(uav), 0, 255).astype(np.float32), sat
+    return uav, sat[:, margin_px:-margin_px, margin_px:-margin_px]
 
 
 def source_of(i: int, sources: list[Source]) -> Source:
@@ -537,15 +550,40 @@ def source_sat_px(src: Source, margin_px: int = 12) -> int:
     return int(n_nat * fine_scale(src)) // PHI - 2 * margin_px
 
 
-def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,
-              control_every: int = 5, base_seed: int = 1000,
-              force: tuple[str, ...] | None = None,
-              effects: tuple[str, ...] | None = None,
-              q_range: tuple[float, float] | None = None, variants: bool = False) -> Case:
-    """Case ``i`` (seed base_seed + i): source round robin; every ``control_every``-th a
-    control (the paper's model only); else 1-3 effects. ``force``: exactly these effects
-    (random parameters), for extra development cases of one kind (seeds 6000-6999 for
-    blur effects; the seeds 1000-1671 are drawn without it).
+@dataclass
+class CaseInputs:
+    """What :func:`render` makes case ``seed`` from: the ground on the fine grid (with
+    margins), Q, the true effects, the random stream at the point where rendering starts
+    (moved objects, then noise), the implementation choices."""
+
+    index: int
+    seed: int
+    source: str
+    q: float
+    truth: dict[str, dict[str, Any]]
+    ground: np.ndarray = field(repr=False)
+    rng: np.random.Generator = field(repr=False)
+    margin_px: int = 12
+    variant: dict[str, Any] | None = None
+
+    @property
+    def label(self) -> str:
+        """The case's name in results: ``c<i>`` in the halves, ``x<seed>`` in the extension."""
+        if EXTENSION_SEEDS[0] <= self.seed <= EXTENSION_SEEDS[1]:
+            return f"x{self.seed}"
+        return f"c{self.index:02d}"
+
+
+def case_inputs(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,
+                control_every: int = 5, base_seed: int = 1000,
+                force: tuple[str, ...] | None = None,
+                effects: tuple[str, ...] | None = None,
+                q_range: tuple[float, float] | None = None, variants: bool = False
+                ) -> CaseInputs:
+    """The inputs of case ``i`` (seed base_seed + i): source round robin; every
+    ``control_every``-th a control (the paper's model only); else 1-3 effects.
+    ``force``: exactly these effects (random parameters), for extra development cases of
+    one kind (seeds 6000-6999 for blur effects; the seeds 1000-1703 are drawn without it).
 
     ``effects`` forces the effect set (parameters still drawn from RANGES, no effect count
     drawn) and ``q_range`` the range Q is drawn from: only for the development extension
@@ -580,10 +618,24 @@ def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: in
     else:
         truth = draw_named_effects(rng, effects)
     variant = draw_variant(seed) if variants else None
-    uav, real = render(ground, q, truth, rng, margin_px=margin_px, variant=variant)
-    label = f"x{seed}" if EXTENSION_SEEDS[0] <= seed <= EXTENSION_SEEDS[1] else f"c{i:02d}"
-    return Case(name=label, seed=seed, source=name, q=q, truth=truth, uav=uav, real=real,
-                variant=variant)
+    return CaseInputs(index=i, seed=seed, source=name, q=q, truth=truth, ground=ground, rng=rng,
+                      margin_px=margin_px, variant=variant)
+
+
+def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,
+              control_every: int = 5, base_seed: int = 1000,
+              force: tuple[str, ...] | None = None,
+              effects: tuple[str, ...] | None = None,
+              q_range: tuple[float, float] | None = None, variants: bool = False) -> Case:
+    """Case ``i`` (seed base_seed + i), rendered: :func:`case_inputs` (its keywords are
+    documented there) then :func:`render`."""
+    inp = case_inputs(i, sources, sat_px=sat_px, margin_px=margin_px,
+                      control_every=control_every, base_seed=base_seed, force=force,
+                      effects=effects, q_range=q_range, variants=variants)
+    uav, real = render(inp.ground, inp.q, inp.truth, inp.rng, margin_px=margin_px,
+                       variant=inp.variant)
+    return Case(name=inp.label, seed=inp.seed, source=inp.source, q=inp.q, truth=inp.truth,
+                uav=uav, real=real, variant=inp.variant)
 
 
 def pick_sources(all_sources: list[Source], n_sjer_each: int = 2) -> list[Source]:

@@ -219,3 +219,44 @@ def test_jpeg_variants_keep_channel_order_and_differ_in_chroma():
     assert np.abs(outs["420"] - outs["444"]).mean() > 0.1
     assert np.abs(outs["422"] - outs["444"]).mean() > 0.1
     assert np.abs(outs["422"] - outs["420"]).mean() > 0.05
+
+
+@pytest.mark.parametrize("pitch_px", [0.9, 1.0, 1.04, 1.29, 1.436, 1.51, 1.6])
+def test_detector_box_is_centred_and_as_wide_as_stated(pitch_px):
+    """The detector box moves nothing (a point's centroid stays, for odd and even
+    floor(10 pitch): an even-length kernel once moved the image by half a fine pixel) and
+    its transfer is sinc(pitch f) (checked against the analytic formula, not the code)."""
+    n = 401
+    img = np.zeros((1, n, n))
+    img[0, n // 2, n // 2] = 1.0
+    out = gen.detector_box(img, pitch_px)[0]
+    idx = np.arange(n) - n // 2
+    assert abs(float((out.sum(axis=0) * idx).sum())) < 1e-6
+    assert abs(float((out.sum(axis=1) * idx).sum())) < 1e-6
+    assert out.sum() == pytest.approx(1.0, abs=1e-6)
+    f = np.fft.fftfreq(n)                                   # cycles per fine pixel
+    mtf = np.abs(np.fft.fft(np.fft.ifftshift(out.sum(axis=0))))
+    band = np.abs(f) * gen.PHI <= 0.5                       # the product band
+    # a fine-grid box (edges split over one fine pixel) is sinc(w f) to < 1 % in the band
+    np.testing.assert_allclose(mtf[band], np.abs(np.sinc(pitch_px * gen.PHI * f[band])),
+                               atol=0.01)
+
+
+def test_noise_free_render_is_the_delivered_scene_before_noise():
+    """``render(..., noise_free=True)`` is the product the noise, whole DN and JPEG act
+    on: without those effects the delivered scene is it rounded; with them it differs by
+    about the noise's variance; the moved objects are drawn alike."""
+    ground = gen.synthetic_ground(np.random.default_rng(3), 40 * gen.PHI)
+    truth = {"detector_integration": {"pitch_px": 1.3}, "scene_change": {"n_objects": 6}}
+    uav_a, clean = gen.render(ground, 1.6, truth, np.random.default_rng(2), margin_px=6,
+                              noise_free=True)
+    uav_b, real = gen.render(ground, 1.6, truth, np.random.default_rng(2), margin_px=6)
+    np.testing.assert_array_equal(uav_a, uav_b)
+    np.testing.assert_array_equal(real, np.clip(np.rint(clean), 0, 255))
+    noisy = {**truth, "sensor_noise": {"gain_dn": 0.2, "read_var_dn2": 4.0}}
+    _, clean_n = gen.render(ground, 1.6, noisy, np.random.default_rng(2), margin_px=6,
+                            noise_free=True)
+    _, real_n = gen.render(ground, 1.6, noisy, np.random.default_rng(2), margin_px=6)
+    np.testing.assert_array_equal(clean_n, clean)
+    expected = 4.0 + 0.2 * float(np.clip(clean, 0, None).mean()) + 1.0 / 12.0
+    assert np.var(real_n - clean_n) == pytest.approx(expected, rel=0.1)
