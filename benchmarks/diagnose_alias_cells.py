@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -46,8 +45,6 @@ from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.diagnose.spectra import block_origins, hann2d  # noqa: E402
 from geosim.physics.otf import atmospheric_otf, detector_otf  # noqa: E402
 
-REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
-SAMPLES = ROOT / "data" / "samples"
 OUT = ROOT / "benchmarks" / "results" / "diagnose_alias_cells.json"
 #: the alias cells besides k = 0 (content beyond 1.5 cycles/px, Q < 0.67, joins |k| = 1)
 CELLS = [(ky, kx) for ky in (-1, 0, 1) for kx in (-1, 0, 1) if (ky, kx) != (0, 0)]
@@ -176,7 +173,7 @@ def run_case(index: int, q: float, effect: str, value: float,
 
 
 def main() -> None:
-    sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
+    sources = gen.default_sources()
     rows = [run_case(*c, sources) for c in CASES]
     OUT.write_text(json.dumps({"q_grid": Q_GRID.tolist(), "block_px": BLOCK_PX,
                                "rows": rows}, indent=1))

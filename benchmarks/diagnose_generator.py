@@ -32,6 +32,7 @@ Directions: degrees clockwise from grid north (up), in [0, 180).
 from __future__ import annotations
 
 import io
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,18 @@ class Source:
     path: Path
     gsd_m: float           # as stated in the file
     note: str = ""
+
+
+#: where the benchmark scripts find the real images and the sample site by default
+REALDATA = Path(os.environ.get("GEOSIM_REALDATA",
+                               Path(__file__).resolve().parents[2] / "shared" / "realdata"))
+SAMPLES = Path(__file__).resolve().parents[1] / "data" / "samples"
+
+
+def default_sources() -> list[Source]:
+    """The benchmark halves' sources (:func:`pick_sources` of :data:`REALDATA` and the
+    sample site)."""
+    return pick_sources(list_sources(REALDATA, SAMPLES))
 
 
 def list_sources(realdata: Path, samples: Path | None) -> list[Source]:

@@ -40,7 +40,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
 import sys
 import time
 from multiprocessing import Pool
@@ -55,8 +54,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_generator as gen  # noqa: E402
 
-REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
-SAMPLES = ROOT / "data" / "samples"
 OUT = ROOT / "benchmarks" / "results" / "diagnose_ideal.json"
 HALVES = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
 #: the effects assessed (each can be absorbed into a wider optical PSF)
@@ -141,7 +138,7 @@ paper_model_mismatch: Any = geosim_paper_model_mismatch
 
 def assess(i: int) -> dict[str, Any]:
     """The ideal observer's evidence for each true blur effect of case ``i``."""
-    return assess_inputs(gen.case_inputs(i, gen.pick_sources(gen.list_sources(REAL, SAMPLES))),
+    return assess_inputs(gen.case_inputs(i, gen.default_sources()),
                          mismatch=paper_model_mismatch)
 
 

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from collections.abc import Callable
@@ -62,8 +61,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_generator as gen  # noqa: E402
 
-REAL = Path(os.environ.get("GEOSIM_REALDATA", ROOT.parent / "shared" / "realdata"))
-SAMPLES = ROOT / "data" / "samples"
+REAL = gen.REALDATA
+SAMPLES = gen.SAMPLES
 #: the halves' results (128 px scenes); other runs write elsewhere
 HALVES_FILE = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
 SEEDS_NOTE = (f"1000 + i; development 1000-{gen.VALIDATION_FIRST_SEED - 1}, validation "
