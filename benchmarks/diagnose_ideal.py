@@ -42,6 +42,7 @@ import copy
 import json
 import sys
 import time
+from collections.abc import Callable
 from multiprocessing import Pool
 from pathlib import Path
 from typing import Any
@@ -69,8 +70,8 @@ BARS = (25.0, 100.0, 400.0)
 #: the signature and mismatch RMS leave out this many product pixels at each edge
 #: (boundary handling differs between implementations)
 INNER_EDGE_PX = 4
-#: the halves' last case index (as diagnose_independent.N_VALIDATION_LAST)
-N_LAST = 703
+#: the halves' last case index (seed 1000 + i)
+N_LAST = gen.VALIDATION_LAST_SEED - 1000
 
 
 def affine_fit(target: np.ndarray, model: np.ndarray) -> np.ndarray:
@@ -133,7 +134,7 @@ def geosim_paper_model_mismatch(inp: gen.CaseInputs) -> float:
 
 
 #: the mismatch column's function (None: left out)
-paper_model_mismatch: Any = geosim_paper_model_mismatch
+paper_model_mismatch: Callable[[gen.CaseInputs], float] | None = geosim_paper_model_mismatch
 
 
 def assess(i: int) -> dict[str, Any]:
@@ -142,7 +143,8 @@ def assess(i: int) -> dict[str, Any]:
                          mismatch=paper_model_mismatch)
 
 
-def assess_inputs(inp: gen.CaseInputs, *, mismatch: Any = None) -> dict[str, Any]:
+def assess_inputs(inp: gen.CaseInputs, *,
+                  mismatch: Callable[[gen.CaseInputs], float] | None = None) -> dict[str, Any]:
     """:func:`assess` for given case inputs; ``mismatch``: a function of them giving the
     paper-model implementation mismatch (DN) recorded beside (None: not recorded)."""
     row: dict[str, Any] = {"case": inp.label, "seed": inp.seed, "q_true": inp.q,
