@@ -47,3 +47,17 @@ def test_the_best_alternative_is_no_worse_than_the_true_q_without_the_effect():
     d2, q_alt, _ = ideal.best_without(inp, "atmospheric_blur", clean, inv_var)
     assert d2 <= ideal.weighted_rss(clean, ideal.affine_fit(clean, same_q), inv_var)
     assert q_alt > inp.q
+
+
+def test_a_long_smear_at_low_q_is_nameable_and_a_short_one_at_high_q_is_not():
+    """A 3 px smear at Q 1.2 is told from any off-nadir Gaussian; a 1.5 px one at Q 4 is
+    plainly there (Q cannot stand in for it) but its shape is not (the naming evidence is
+    far below the blur's own)."""
+    long = ideal.assess_inputs(_inputs(1.2, {"motion_smear": {"length_px": 3.0,
+                                                               "direction_deg": 30.0}}))
+    v = long["ideal"]["motion_smear"]
+    assert v["nameable"] and v["naming_delta_chi2"] > 100
+    short = ideal.assess_inputs(_inputs(4.0, {"motion_smear": {"length_px": 1.5,
+                                                                "direction_deg": 30.0}}))
+    w = short["ideal"]["motion_smear"]
+    assert w["detectable"] and w["naming_delta_chi2"] < 0.05 * w["delta_chi2"]
