@@ -152,8 +152,7 @@ def run_case(index: int, q: float, effect: str, value: float,
     inp = gen.case_inputs(index, sources)
     truth = {effect: {PARAM[effect][0]: value}}
     uav, real = gen.render(inp.ground, q, truth, copy.deepcopy(inp.rng), margin_px=inp.margin_px)
-    w = np.asarray(gen.LUMA)[:, None, None]
-    uav_g, real_g = (uav * w).sum(0).astype(float), (real * w).sum(0)
+    uav_g, real_g = gen.luma(uav.astype(float)), gen.luma(real.astype(float))
     sim = QSimulator(uav_g[None].astype(np.float32), phi=gen.PHI, q_min=0.6)
     sims = [sim(qq)[0] for qq in Q_GRID]
     origins = block_origins(real_g.shape, block_px=BLOCK_PX)

@@ -99,6 +99,15 @@ def inner_rms(diff: np.ndarray, edge_px: int = INNER_EDGE_PX) -> float:
     return float(np.sqrt(np.mean(np.square(diff[:, edge_px:-edge_px, edge_px:-edge_px]))))
 
 
+def fitted_render(inp: gen.CaseInputs, q: float, truth: dict[str, dict[str, Any]],
+                  target: np.ndarray) -> np.ndarray:
+    """The case's noise-free product at ``q`` with ``truth`` (same ground, moved objects
+    and implementation), a gain and offset per band fitted to ``target``."""
+    _, sat = gen.render(inp.ground, q, truth, copy.deepcopy(inp.rng), margin_px=inp.margin_px,
+                        variant=inp.variant, noise_free=True)
+    return affine_fit(target, sat)
+
+
 def best_without(inp: gen.CaseInputs, effect: str, target: np.ndarray,
                  inv_var: np.ndarray) -> tuple[float, float, np.ndarray]:
     """(delta_chi2, Q', difference) of the best render without ``effect``: Q' on a log
@@ -106,13 +115,8 @@ def best_without(inp: gen.CaseInputs, effect: str, target: np.ndarray,
     the best; the difference is ``target`` minus that render (after its affine fit)."""
     truth = {k: v for k, v in inp.truth.items() if k != effect}
 
-    def fitted(q: float) -> np.ndarray:
-        _, sat = gen.render(inp.ground, q, truth, copy.deepcopy(inp.rng),
-                            margin_px=inp.margin_px, variant=inp.variant, noise_free=True)
-        return affine_fit(target, sat)
-
     def rss(q: float) -> float:
-        return weighted_rss(target, fitted(q), inv_var)
+        return weighted_rss(target, fitted_render(inp, q, truth, target), inv_var)
 
     grid = inp.q * np.geomspace(0.85, 2.6, 9)
     vals = [rss(q) for q in grid]
@@ -121,12 +125,14 @@ def best_without(inp: gen.CaseInputs, effect: str, target: np.ndarray,
     res = minimize_scalar(rss, bounds=(lo, hi), method="bounded",
                           options={"xatol": 2e-3 * inp.q, "maxiter": 14})
     d2, q_best = min((res.fun, res.x), (vals[k], grid[k]))
-    return float(d2), float(q_best), target - fitted(q_best)
+    return float(d2), float(q_best), target - fitted_render(inp, q_best, truth, target)
 
 
 #: the anisotropic pair: (parameter, direction key) of each member
 ANISOTROPIC = {"motion_smear": ("length_px", "direction_deg"),
                "off_nadir_anisotropy": ("sigma_px", "azimuth_deg")}
+#: each anisotropic member's other member
+OTHER_MEMBER = {"motion_smear": "off_nadir_anisotropy", "off_nadir_anisotropy": "motion_smear"}
 
 
 def naming_evidence(inp: gen.CaseInputs, effect: str, target: np.ndarray,
@@ -135,7 +141,7 @@ def naming_evidence(inp: gen.CaseInputs, effect: str, target: np.ndarray,
     in place of ``effect``: its width and Q fitted (Nelder-Mead from the equal second
     moment, L² / 12 = σ²), its direction held at the true one (a refitted direction could
     only fit better: the evidence for the name is, if anything, overstated)."""
-    other = next(n for n in ANISOTROPIC if n != effect)
+    other = OTHER_MEMBER[effect]
     key, dkey = ANISOTROPIC[other]
     own_key, own_dkey = ANISOTROPIC[effect]
     width = inp.truth[effect][own_key]
@@ -145,9 +151,8 @@ def naming_evidence(inp: gen.CaseInputs, effect: str, target: np.ndarray,
 
     def rss(x: np.ndarray) -> float:
         truth = {**base, other: {key: float(max(x[1], 0.05)), dkey: direction}}
-        _, sat = gen.render(inp.ground, float(np.exp(x[0])), truth, copy.deepcopy(inp.rng),
-                            margin_px=inp.margin_px, variant=inp.variant, noise_free=True)
-        return weighted_rss(target, affine_fit(target, sat), inv_var)
+        return weighted_rss(target, fitted_render(inp, float(np.exp(x[0])), truth, target),
+                            inv_var)
 
     res = minimize(rss, np.array([np.log(inp.q), start]), method="Nelder-Mead",
                    options={"maxfev": NAMING_EVALUATIONS, "xatol": 1e-3, "fatol": 0.5})
@@ -265,13 +270,12 @@ def _naming_counts(anis: list[tuple[str, str, dict[str, Any]]],
                    claimed: dict[str, set[str]]) -> dict[str, int]:
     """The anisotropic effects by whether their name is ideally determined, and how often
     the tool named them right or as the other member."""
-    other = {"motion_smear": "off_nadir_anisotropy", "off_nadir_anisotropy": "motion_smear"}
     out = {"effects": len(anis)}
     for label, flag in (("nameable", True), ("not_nameable", False)):
         sel = [(c, e) for c, e, v in anis if v["nameable"] == flag]
         out[label] = len(sel)
         out[f"{label}_named_right"] = sum(e in claimed[c] for c, e in sel)
-        out[f"{label}_named_other"] = sum(other[e] in claimed[c] for c, e in sel)
+        out[f"{label}_named_other"] = sum(OTHER_MEMBER[e] in claimed[c] for c, e in sel)
     return out
 
 

@@ -62,7 +62,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import diagnose_generator as gen  # noqa: E402
 
 REAL = gen.REALDATA
-SAMPLES = gen.SAMPLES
 #: the halves' results (128 px scenes); other runs write elsewhere
 HALVES_FILE = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
 SEEDS_NOTE = (f"1000 + i; development 1000-{gen.VALIDATION_FIRST_SEED - 1}, validation "
@@ -233,7 +232,7 @@ def main() -> None:
     if halves_file and (args.only or args.indices or args.cases != N_CASES):
         sys.exit("--only, --indices and --cases run part of the halves: give --out, then "
                  "--merge that file into the halves' results file")
-    sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
+    sources = gen.default_sources()
     if not sources:
         sys.exit(f"no real images under {REAL}; set GEOSIM_REALDATA")
     if args.large_sources:
@@ -298,7 +297,7 @@ def merge(files: list[Path], out: str) -> None:
             r["detection_limits"] = detection_limits_json(float(r["q_refined"]))
             r["detection_limits_restated"] = True
     ordered = sorted(rows.values(), key=lambda r: r["seed"])
-    sources = gen.pick_sources(gen.list_sources(REAL, SAMPLES))
+    sources = gen.default_sources()
     # the file's seconds_total: the rows' own (not the merge's)
     t0 = time.time() - sum(r.get("seconds_total", 0.0) for r in ordered)
     _write(out, ordered, sources, t0, SEEDS_NOTE,
