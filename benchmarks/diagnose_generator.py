@@ -379,6 +379,11 @@ def is_validation_seed(seed: int) -> bool:
 EXTENSION_SEEDS = (5000, 5999)
 
 
+def is_extension_seed(seed: int) -> bool:
+    """Whether ``seed`` belongs to the development extension (:data:`EXTENSION_SEEDS`)."""
+    return EXTENSION_SEEDS[0] <= seed <= EXTENSION_SEEDS[1]
+
+
 #: the implementation choices of the benchmark's halves (the chain in the module docstring)
 DEFAULT_VARIANT: dict[str, Any] = {"atmosphere_exponent": 5.0 / 3.0,
                                    "interpolation": "opencv_cubic", "jpeg": "pillow_420",
@@ -418,7 +423,7 @@ class Case:
 
     @property
     def split(self) -> str:
-        if EXTENSION_SEEDS[0] <= self.seed <= EXTENSION_SEEDS[1]:
+        if is_extension_seed(self.seed):
             return "extension"
         return "validation" if is_validation_seed(self.seed) else "development"
 
@@ -582,7 +587,7 @@ class CaseInputs:
     @property
     def label(self) -> str:
         """The case's name in results: ``c<i>`` in the halves, ``x<seed>`` in the extension."""
-        if EXTENSION_SEEDS[0] <= self.seed <= EXTENSION_SEEDS[1]:
+        if is_extension_seed(self.seed):
             return f"x{self.seed}"
         return f"c{self.index:02d}"
 
@@ -605,7 +610,7 @@ def case_inputs(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: 
     (:func:`draw_variant`) instead of the default ones; effects and parameters unchanged."""
     seed = base_seed + i
     forced = effects is not None or q_range is not None
-    if forced and not EXTENSION_SEEDS[0] <= seed <= EXTENSION_SEEDS[1]:
+    if forced and not is_extension_seed(seed):
         raise ValueError(f"seed {seed}: forced effects or Q range only for the development "
                          f"extension seeds {EXTENSION_SEEDS[0]}-{EXTENSION_SEEDS[1]}")
     rng = np.random.default_rng(seed)
