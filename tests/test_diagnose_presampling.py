@@ -142,8 +142,8 @@ def test_native_resampling_aliases_as_the_native_sampling_does():
 
 
 def test_native_phase_shift_flips_the_alias_not_the_passband():
-    """Moving the scene half a native cell against the native grid (and the product back,
-    ``ForwardModel.native_phase_shift_px``) leaves content below the native Nyquist where
+    """Moving the native grid half a cell against the scene
+    (``ForwardModel.native_phase_px``) leaves content below the native Nyquist where
     it was and turns content the native grid aliases by π (analytic: a sample at
     (k + ½)·pitch of frequency f, reconstructed at f − 1/pitch): what a native grid of
     unknown phase changes, and nothing else."""
@@ -154,17 +154,16 @@ def test_native_phase_shift_flips_the_alias_not_the_passband():
 
     def spectra(cycles: int) -> tuple[np.ndarray, np.ndarray, int]:
         sim = QSimulator(_columns_cosine(n_sat, phi, cycles), phi=phi, q_min=0.5)
-        n_nat = int(round(n_sat / 1.5))
         model = ForwardModel(q=0.6, blur={"resampling": {"native_pitch_px": 1.5}},
                              registration=reg)
-        half = 0.5 * n_sat / n_nat                  # half a cell of the pitch rendered
+        half = 0.75                                 # half a native cell
 
         def spec(m: ForwardModel) -> np.ndarray:
             prof = m.deterministic(sim)[0, 16:-16, 16:-16].mean(axis=0)  # off the edges
             return np.fft.rfft((prof - prof.mean()) * w)
 
         s0 = spec(model)
-        s1 = spec(model.without(native_phase_shift_px=(half, 0.0)))
+        s1 = spec(model.without(native_phase_px=(0.0, half)))   # along the columns
         k = int(np.argmax(np.abs(s0[1:]))) + 1
         return s0, s1, k
 

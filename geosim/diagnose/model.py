@@ -181,11 +181,12 @@ class ForwardModel:
     seam: GainStep | None = None
     radiometry: RadiometryChoice | None = None
     noise: NoiseEstimate | None = None
-    #: (d_col, d_row), product pixels: the scene moved this much against resampling's
-    #: native grid and the product moved back, i.e. the same product from a native grid
-    #: placed elsewhere (a real grid's phase is unknown; see
-    #: :func:`geosim.diagnose.stage_change.resampling_phase_dn2`)
-    native_phase_shift_px: tuple[float, float] = (0.0, 0.0)
+    #: (row, col), product pixels: where an edge of a resampling's native grid lies
+    #: against the product grid (taken modulo the native pitch; 0: the grids' first edges
+    #: coincide). A real grid's phase is unknown: fitted where its aliasing shows
+    #: (:mod:`geosim.diagnose.stage_aliasing`); see also
+    #: :func:`geosim.diagnose.stage_change.resampling_phase_dn2`
+    native_phase_px: tuple[float, float] = (0.0, 0.0)
     #: moved objects (scene change) added to the product before noise and compression
     #: (:mod:`geosim.diagnose.stage_objects`); None: the ground as the UAV saw it
     objects: SceneObjects | None = None
@@ -233,13 +234,10 @@ class ForwardModel:
         s = None
         if resampled:
             # resampling rendered from the fine grid (native sampling of the optics' image)
-            ps = self.native_phase_shift_px
-            s = native(self.q, **rest["resampling"],
-                       shift_px=(shift[0] + ps[0], shift[1] + ps[1]), transfer=tr, key=key)
+            s = native(self.q, **rest["resampling"], shift_px=shift, transfer=tr, key=key,
+                       phase_px=self.native_phase_px)
             if s is not None:
                 rest = {n: p for n, p in rest.items() if n != "resampling"}
-                if ps != (0.0, 0.0):
-                    s = fourier_shift(s, (-ps[0], -ps[1]))
         if s is None:
             v = variant(shift_px=shift, transfer=tr, key=key) if lsi else None
             if v is None:

@@ -8,18 +8,19 @@ downsampling: the project's one implementation,
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from geosim.degrade.core import (
     SpectralDegrader,
-    blur_coefficients,
     dct_coefficients,
     degrade_array,
+    n_coefficients,
+    optics_otf_dct,
 )
 from geosim.physics import otf
-from geosim.physics.cubic import OPENCV_A, cubic_resize
+from geosim.physics.cubic import OPENCV_A
 from geosim.physics.geometry import fourier_shift
+from geosim.physics.native_grid import native_area_dct, native_to_product
 from geosim.physics.otf import TransferFunction
 
 __all__ = ["paper_model", "QSimulator", "VARIANT_CACHE"]
@@ -61,8 +62,10 @@ class QSimulator:
         self._cache: dict[float, np.ndarray] = {}
         self._fast = SpectralDegrader(self.uav, phi=self.phi, q_min=self.q_min, valid=valid)
         self._variants: dict[object, QSimulator] = {}
+        #: (key, the optics' image of the moved fine image as its DCT below the cut-off)
         self._native_fine: tuple[object, np.ndarray] | None = None
-        self._native_low: tuple[object, list[np.ndarray]] | None = None
+        self._native_low: tuple[object, tuple[np.ndarray, np.ndarray, np.ndarray]] | None \
+            = None
         self._native_coef: tuple[object, np.ndarray] | None = None
         if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
             self.uav = None
@@ -131,13 +134,15 @@ class QSimulator:
 
     def native(self, q: float, native_pitch_px: float, *, cubic_a: float = OPENCV_A,
                shift_px: tuple[float, float] = (0.0, 0.0),
-               transfer: TransferFunction | None = None, key: object = None
-               ) -> np.ndarray | None:
+               transfer: TransferFunction | None = None, key: object = None,
+               phase_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray | None:
         """A product resampled from a coarser native sampling, rendered where it happens:
         the UAV image (moved by ``shift_px`` and filtered by ``transfer``, satellite-grid
         units, as in :meth:`variant`) through the optics of ``q`` on the fine grid, each
-        native detector averaging its area (``native_pitch_px`` product pixels), then
-        cubic convolution (kernel parameter ``cubic_a``) onto the product grid.
+        native detector averaging its area (``native_pitch_px`` product pixels, any real
+        value; a native pixel edge at ``phase_px``, (row, col) product pixels), then cubic
+        convolution (kernel parameter ``cubic_a``) onto the product grid
+        (:func:`geosim.physics.native_grid.render_through_native`).
         Resampling the *sampled* simulation instead misses the aliasing the native
         sampling makes of content above the product Nyquist (Q ≲ 1.5). ``None`` when
         the simulator keeps no image or the image has invalid pixels. Bands first, DN, float64."""
@@ -152,21 +157,23 @@ class QSimulator:
                 img = self._moved_filtered(img[np.newaxis] if img.ndim == 2 else img,
                                            shift_px, transfer)
                 self._native_coef = (moved_key, dct_coefficients(img))
-            # one Airy-blurred fine image kept (the pitch scans reuse it)
-            fine = blur_coefficients(self._native_coef[1], q=q, phi=self.phi)
-            self._native_fine = (ck, fine.astype(np.float32))
+            # the optics' image as its DCT below the cut-off (the pitch and phase scans
+            # reuse it): no inverse transform of the fine image
+            coef = self._native_coef[1]
+            k = (n_coefficients(coef.shape[-2], q=q, phi=self.phi),
+                 n_coefficients(coef.shape[-1], q=q, phi=self.phi))
+            otf_k = optics_otf_dct(coef.shape[-2:], q=q, phi=self.phi, n_coef=k)
+            self._native_fine = (ck, coef[:, :k[0], :k[1]] * otf_k)
             self._native_low = None
-        fine = self._native_fine[1]
-        rows, cols = fine.shape[-2] // self.phi, fine.shape[-1] // self.phi
-        n_rows = max(2, int(round(rows / native_pitch_px)))
-        n_cols = max(2, int(round(cols / native_pitch_px)))
+        band_coef = self._native_fine[1]
+        fine_shape = self._native_coef[1].shape[-2:]   # type: ignore[index]
         # the native sampling kept for the next call: the kernel scans render each pitch
         # with both cubic kernels, one after the other
-        if self._native_low is None or self._native_low[0] != (ck, n_rows, n_cols):
-            lows = [cv2.resize(np.ascontiguousarray(band[:rows * self.phi, :cols * self.phi]),
-                               (n_cols, n_rows), interpolation=cv2.INTER_AREA) for band in fine]
-            self._native_low = ((ck, n_rows, n_cols), lows)
-        out = np.empty((fine.shape[0], rows, cols))
-        for i, low in enumerate(self._native_low[1]):
-            out[i] = cubic_resize(low, (rows, cols), cubic_a)
-        return out
+        nk = (ck, round(float(native_pitch_px), 9), round(float(phase_px[0]), 9),
+              round(float(phase_px[1]), 9))
+        if self._native_low is None or self._native_low[0] != nk:
+            self._native_low = (nk, native_area_dct(band_coef, fine_shape, self.phi,
+                                                    native_pitch_px, phase_px))
+        nat, cr, cc = self._native_low[1]
+        rows, cols = fine_shape[0] // self.phi, fine_shape[1] // self.phi
+        return native_to_product(nat, cr, cc, (rows, cols), cubic_a)

@@ -51,18 +51,19 @@ def resampling_phase_dn2(inp: Inputs, model: ForwardModel,
     """Residual energy (map, DN²) that a resampling's unknown native-grid phase leaves.
 
     The aliasing of a coarser native grid depends on where that grid lies against the
-    scene, which nothing in the product tells: the model's grid starts at the product
-    grid's origin, the real one anywhere. Its aliased component is strongest on
+    scene, which nothing in the product tells: the model's grid lies at the phase fitted
+    on the power spectrum where a resampling was refined there (round 22), else at the
+    product grid's origin; the real one anywhere. Its aliased component is strongest on
     object-sized high-contrast texture and would otherwise read as moved objects
     (development c176 at Q 1.17: ``scene_change`` claimed beside a true resampling and
     a shift; c84 at Q 0.99, whose native pitch is fitted 6 % short, still claims it: a
     wrong pitch changes where the aliases fold, not only their phase).
 
-    Moving the scene half a native cell along one axis against the grid (and the product
-    back) leaves the pass band as it was and flips the sign of the aliases folded along
-    that axis (a sample at (k + ½)·pitch of frequency f, reconstructed at f − 1/pitch,
-    turns by π), so the difference from the model is twice those aliases. Against a grid
-    of unknown phase θ the expected residual of an alias ``a`` is
+    Moving the native grid half a cell along one axis against the scene
+    (``ForwardModel.native_phase_px``) leaves the pass band as it was and flips the sign
+    of the aliases folded along that axis (a sample at (k + ½)·pitch of frequency f,
+    reconstructed at f − 1/pitch, turns by π), so the difference from the model is twice
+    those aliases. Against a grid of unknown phase θ the expected residual of an alias ``a`` is
     E|a (e^{iθ} − 1)|² = 2|a|²: half the summed energies of the two one-axis differences
     (the aliases folded along both axes counted twice). Taken before compression (its own
     error is :func:`changed_regions`'s other ``extra_dn2``): ``plain`` is the model's
@@ -72,9 +73,10 @@ def resampling_phase_dn2(inp: Inputs, model: ForwardModel,
         return 0.0
     m = model.without(compression=None)
     half = 0.5 * p["native_pitch_px"]
+    r0, c0 = model.native_phase_px
     return 0.5 * sum(locate.residual_energy_map(grey(
-        plain - m.without(native_phase_shift_px=d).deterministic(inp.simulate)))
-        for d in ((half, 0.0), (0.0, half)))
+        plain - m.without(native_phase_px=d).deterministic(inp.simulate)))
+        for d in ((r0 + half, c0), (r0, c0 + half)))
 
 
 def scene_change_claim(inp: Inputs, model: ForwardModel, sc: list[locate.Region],

@@ -1,0 +1,149 @@
+"""A product resampled from a coarser native grid of any pitch and phase.
+
+A satellite product delivered at 0.5 m from detectors of a coarser native GSD (e.g. 0.65–0.8 m)
+is two steps: each native detector averages the optics' image over its area, and cubic
+convolution interpolates the native samples onto the product grid. On a crop of a product
+the native pitch (native GSD / product GSD) is a real number and the native grid's phase
+(where its first pixel edge lies against the product's) is arbitrary; below Q ≈ 2, where
+the optics pass content above the native Nyquist, the aliasing the native sampling makes
+depends on both (development c09: spectral error 0.146 at the grid's phase 0, 0.046 near the
+true one).
+
+:func:`native_area` integrates a fine-grid image over native pixels at any pitch and phase
+(overlap weights, exact for box detectors on the fine pixels' piecewise-constant image);
+:func:`native_to_product` interpolates native samples onto product pixel centres by cubic
+convolution (:func:`geosim.physics.cubic.keys_kernel`, edge samples replicated as OpenCV
+does). Pure numerics, no I/O.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from geosim.physics.cubic import OPENCV_A, keys_kernel
+
+__all__ = ["native_edges", "native_area", "native_area_dct", "native_to_product",
+           "render_through_native"]
+
+
+def native_edges(n_px: int, native_pitch_px: float, phase_px: float) -> np.ndarray:
+    """Edges of the native pixels covering ``n_px`` product pixels, product-pixel
+    coordinates (0 at the product's first pixel edge): phase + k · pitch for every k with
+    a native pixel overlapping [0, n_px); ``phase_px`` is taken modulo the pitch."""
+    p = float(native_pitch_px)
+    if p <= 0:
+        raise ValueError(f"native_pitch_px must be positive, got {native_pitch_px}")
+    ph = float(phase_px) % p
+    k0 = -1 if ph > 0 else 0
+    k1 = int(np.ceil((n_px - ph) / p))
+    return ph + p * np.arange(k0, k1 + 1)
+
+
+def _area_weights(edges_fine: np.ndarray, n: int) -> np.ndarray:
+    """(n_native, n) weights of the fine pixels [i, i + 1) in each native pixel
+    [e_k, e_k+1) (fine-pixel coordinates, clipped to [0, n]): overlap over width."""
+    e = np.clip(edges_fine, 0.0, float(n))
+    i = np.arange(n)
+    lo, hi = e[:-1, None], e[1:, None]
+    overlap = np.clip(np.minimum(i + 1, hi) - np.maximum(i, lo), 0.0, None)
+    return overlap / np.maximum(hi - lo, 1e-12)
+
+
+def native_area(fine: np.ndarray, phi: int, native_pitch_px: float,
+                phase_px: tuple[float, float] = (0.0, 0.0)
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each native detector's mean over its area.
+
+    Parameters
+    ----------
+    fine
+        Image on the fine grid, (..., rows · phi, cols · phi).
+    phi
+        Fine pixels per product pixel.
+    native_pitch_px
+        Native pitch, product pixels.
+    phase_px
+        (row, col) position of a native pixel edge, product pixels (modulo the pitch).
+
+    Returns
+    -------
+    native, centres_row, centres_col
+        The native samples (..., n_rows, n_cols) and their centres, product-pixel
+        coordinates (detectors cut by the scene's edge average the part inside).
+    """
+    rows, cols = fine.shape[-2] // phi, fine.shape[-1] // phi
+    er = native_edges(rows, native_pitch_px, phase_px[0])
+    ec = native_edges(cols, native_pitch_px, phase_px[1])
+    # separable: one matrix product per axis (float32, as the fine image is kept)
+    wr = _area_weights(er * phi, rows * phi).astype(np.float32)
+    wc = _area_weights(ec * phi, cols * phi).astype(np.float32)
+    img = np.asarray(fine[..., :rows * phi, :cols * phi], dtype=np.float32)
+    out = (wr @ img @ wc.T).astype(float)
+    return out, (er[:-1] + er[1:]) / 2, (ec[:-1] + ec[1:]) / 2
+
+
+def _dct_box_matrix(edges: np.ndarray, n: int, n_coef: int) -> np.ndarray:
+    """(n_native, n_coef) means over [e_j, e_j+1] (positions from the image's first edge,
+    fine pixels) of the first ``n_coef`` orthonormal DCT-II basis functions of an ``n``-pixel
+    axis, continued between the pixel centres: √(c_k / n) cos(π k s / n) (c_0 = 1, else 2)."""
+    k = np.arange(n_coef)[np.newaxis, :]
+    s0, s1 = edges[:-1, np.newaxis], edges[1:, np.newaxis]
+    width = np.maximum(s1 - s0, 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = np.where(k == 0, 1.0, n * (np.sin(np.pi * k * s1 / n) - np.sin(np.pi * k * s0 / n))
+                        / (np.pi * np.maximum(k, 1) * width))
+    return np.where(k == 0, np.sqrt(1.0 / n), np.sqrt(2.0 / n)) * mean
+
+
+def native_area_dct(coef: np.ndarray, fine_shape: tuple[int, int], phi: int,
+                    native_pitch_px: float, phase_px: tuple[float, float] = (0.0, 0.0)
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`native_area` of the image whose first orthonormal DCT-II coefficients are
+    ``coef`` (..., K_rows, K_cols; the rest zero, as past the optics' cut-off), the image
+    continued between pixel centres by its cosine series (the band-limited image the
+    optics make, where :func:`native_area` takes each fine pixel as constant). Two small
+    matrix products per band instead of an inverse transform of the fine image.
+
+    ``fine_shape``: (rows, cols) of the fine image, pixels; the scene is its first
+    (rows // phi) · phi × (cols // phi) · phi pixels."""
+    n_r, n_c = int(fine_shape[0]), int(fine_shape[1])
+    rows, cols = n_r // phi, n_c // phi
+    er = native_edges(rows, native_pitch_px, phase_px[0])
+    ec = native_edges(cols, native_pitch_px, phase_px[1])
+    mr = _dct_box_matrix(np.clip(er * phi, 0.0, rows * phi), n_r, coef.shape[-2])
+    mc = _dct_box_matrix(np.clip(ec * phi, 0.0, cols * phi), n_c, coef.shape[-1])
+    return mr @ coef @ mc.T, (er[:-1] + er[1:]) / 2, (ec[:-1] + ec[1:]) / 2
+
+
+def _cubic_weights(centres: np.ndarray, n_out: int, a: float) -> np.ndarray:
+    """(n_out, n_in) cubic-convolution weights from samples at ``centres`` (evenly
+    spaced, product-pixel coordinates) to product pixel centres j + 0.5."""
+    p = centres[1] - centres[0] if len(centres) > 1 else 1.0
+    src = (np.arange(n_out) + 0.5 - centres[0]) / p      # in native samples
+    base = np.floor(src).astype(int)
+    w = np.zeros((n_out, len(centres)))
+    rows = np.arange(n_out)
+    for t in range(-1, 3):
+        np.add.at(w, (rows, np.clip(base + t, 0, len(centres) - 1)),
+                  keys_kernel(src - (base + t), a))
+    return w
+
+
+def native_to_product(native: np.ndarray, centres_row: np.ndarray, centres_col: np.ndarray,
+                      shape: tuple[int, int], cubic_a: float = OPENCV_A) -> np.ndarray:
+    """Cubic convolution (kernel parameter ``cubic_a``) of native samples (..., n_rows,
+    n_cols) at ``centres_row`` × ``centres_col`` onto the product grid ``shape``."""
+    wr = _cubic_weights(centres_row, shape[0], cubic_a)
+    wc = _cubic_weights(centres_col, shape[1], cubic_a)
+    return wr @ native @ wc.T
+
+
+def render_through_native(fine: np.ndarray, phi: int, native_pitch_px: float, *,
+                          phase_px: tuple[float, float] = (0.0, 0.0),
+                          cubic_a: float = OPENCV_A) -> np.ndarray:
+    """The product a native grid of ``native_pitch_px`` at ``phase_px`` makes of the
+    fine-grid image ``fine`` (the optics' image, (..., rows · phi, cols · phi)):
+    :func:`native_area` then :func:`native_to_product`, (..., rows, cols), float64."""
+    nat, cr, cc = native_area(fine, phi, native_pitch_px, phase_px)
+    rows, cols = fine.shape[-2] // phi, fine.shape[-1] // phi
+    return native_to_product(nat, cr, cc, (rows, cols), cubic_a)
