@@ -194,6 +194,24 @@ def test_resampling_with_either_cubic_kernel_is_named_alone(interpolation, true_
     assert se_ref < se_base, (se_base, se_ref)
 
 
+def test_low_q_resampling_pitch_q_and_phase_from_the_power_spectrum():
+    """Round 22. At Q 1.0 the optics pass content far above a 1.45 px native grid's
+    Nyquist; the grid's aliasing makes the transfer incoherent (its Q and pitch were far
+    off: development c09, c629) and, against a native grid placed elsewhere, the power
+    spectrum too (the generator's grid starts at its margin's edge, 12 px: a phase of
+    0.4 px here). Pitch, Q and phase refined together on the power spectrum recover the
+    grid, and the refined simulation fits."""
+    truth = {"resampling": {"native_pitch_px": 1.45}}
+    claimed, se_base, se_ref, d = _run(truth, q=1.0, seed=31)
+    assert set(claimed) == {"resampling"}, list(claimed)
+    # the generator's pitch: whole native pixels over the rendered extent (120 px)
+    n = 96 + 24
+    pitch = n / round(n / 1.45)
+    assert abs(claimed["resampling"]["params"]["native_pitch_px"] - pitch) < 0.03
+    assert abs(d.summary["refined"]["q"] - 1.0) < 0.05
+    assert se_ref <= 0.5 * se_base, (se_base, se_ref)
+
+
 def test_jpeg_alone_is_not_called_an_isotropic_blur():
     """A JPEG'd product (Pillow, after sampling) loses high frequencies, and JPEG lowers the
     Laplacian variance, so the LV baseline's Q (and the top of the Q grid derived from it)

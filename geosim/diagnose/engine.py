@@ -167,7 +167,14 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     ev = EvalContext(mask=eval_mask, origins=ev_origins, block_px=setup.block_px,
                      real_grey=inp.grey, noise_seed=int(rng.integers(0, 2**31 - 1)))
     model, withdrawn_noise = noise_helps(inp, model, ev)
+    before = model
     model = aliasing_test(inp, model, sel, setup, ev, window.candidates)
+    if before.noise is not None and before.noise.claimed and model.noise is None:
+        # the resampling's aliasing took the noise's place: the noise judged again
+        # against it, by the same rules
+        model, withdrawn_again = noise_helps(
+            inp, estimate_scene_noise(inp, model, setup, fit_mask), ev)
+        withdrawn_noise = withdrawn_noise + withdrawn_again
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     model, withdrawn_alias = jpeg_resampling_beyond_optics(inp, model, sel, setup)
     found = model

@@ -12,6 +12,7 @@ from geosim.diagnose.context import EvalContext
 from geosim.diagnose.fit import TransferFit, evaluate_chi2, fit_transfer
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.resampling_limit import ResamplingLimit, resampling_limit
+from geosim.diagnose.resampling_refine import refine_resampling
 from geosim.diagnose.select import (
     AcceptedEffect,
     BlurSelection,
@@ -20,11 +21,11 @@ from geosim.diagnose.select import (
     cv_chi2,
     delta_bic,
 )
-from geosim.diagnose.spectra import spectral_error
+from geosim.diagnose.spectra import block_origins, spectral_error
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs, greys
 from geosim.diagnose.stage_noise import realisations
-from geosim.diagnose.stage_withdraw import native_nyquist_floor_px
+from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, native_nyquist_floor_px
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
 __all__ = ["aliasing_test", "split_halves", "resampling_detection_limit", "with_resampling",
@@ -41,6 +42,10 @@ ALIASING_SPECTRAL_GAIN_SPLIT = 0.9
 PITCH_STEP = 0.05
 #: native pitches (0.5 m product pixels) scanned on the power spectrum: 1.15-2.0 px
 PITCH_SCAN = np.round(np.arange(1.15, 2.0 + PITCH_STEP / 5, PITCH_STEP), 2)
+#: the scan's best pairs refined on the power spectrum, and how far apart their pitches
+#: must be, px
+REFINE_STARTS = 2
+REFINE_START_SEP_PX = 0.1
 
 
 def split_halves(origins: list[tuple[int, int]], block_px: int, cols: int
@@ -71,6 +76,12 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
        roll-off, and the two at the Q fitted without it blur twice.
     3. A pitch the transfer gave (route 1, or forward selection) is moved to the scanned
        pitch of lowest spectral error (:func:`_pitch_on_spectrum`; not under JPEG).
+    4. Pitch, Q and the native grid's phase are then refined together on the power
+       spectrum (:func:`_on_spectrum`; in route 2 each half's choice on that half, before
+       it is scored on the other); not under JPEG, where a resampling's spectrum is the
+       mean over four native phases (:func:`phase_realisations`). Where noise is claimed
+       each candidate is also scored without it (:func:`scan_on_transfer`); route 2 uses
+       every valid block where ``ev``'s leave too few for its halves.
 
     Spectral errors on ``ev``'s blocks (route 2: its left and right halves), noise
     realisations from ``ev.noise_seed``; ``candidates``: the effects the fit may add
@@ -82,12 +93,18 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
 
     def delivered(m: ForwardModel) -> list[np.ndarray]:
         # with noise claimed, the expected spectrum (mean of the realisations): one
-        # realisation's scatter (±0.08 on small JPEG scenes) can pass for aliased power
+        # realisation's scatter (±0.08 on small JPEG scenes) can pass for aliased power;
+        # under JPEG, where the native phase is not fitted, over the phase as well
+        if m.compression is not None and name in m.blur:
+            return phase_realisations(inp, m, ev.noise_seed)
         return realisations(inp, m, ev.noise_seed)
 
+    def se_all(m: ForwardModel) -> float:
+        return ev.spectral_error(delivered(m))
+
     if name in model.blur:  # chosen by forward selection on the transfer
-        return _selected_pitch_on_spectrum(sel, setup, model,
-                                           lambda m: ev.spectral_error(delivered(m)))
+        moved = _selected_pitch_on_spectrum(sel, setup, model, se_all)
+        return _refine_selected(sel, setup, moved, se_all)
 
     names = [*model.blur, name]
     fit = fit_transfer(setup.full, names, q_starts=(model.q, inp.q_base))
@@ -102,9 +119,11 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
             gain = 1.0 - cv_chi2(setup.folds, names, fit) / max(cv0, 1e-300)
         with_r = model.without(q=fit.q, blur=dict(fit.effects))
         se_r = ev.spectral_error(delivered(with_r))
-        if gain >= 0 and se_r <= ALIASING_SPECTRAL_GAIN * ev.spectral_error(delivered(model)):
-            fit, with_r = _pitch_on_spectrum(setup, fit, with_r, se_r,
-                                             lambda m: ev.spectral_error(delivered(m)))
+        if gain >= 0 and se_r <= ALIASING_SPECTRAL_GAIN * se_all(model):
+            fit, with_r = _pitch_on_spectrum(setup, fit, with_r, se_r, se_all)
+            refined = _on_spectrum(setup, with_r, se_all)
+            if refined is not with_r:
+                fit, with_r = _moved_fit(setup, fit, refined), refined
             n_values = 2 * setup.full.t_real.size
             sel.steps.append(AcceptedEffect(name, delta_bic(prev, fit, n_values), gain, [], fit))
             sel.cv_gain[name] = gain
@@ -113,40 +132,55 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     # route 2: the native pitch from the power spectrum, validated on split halves
     halves = split_halves(ev.origins, setup.block_px, inp.valid.shape[1])
     if halves is None:
+        # too few blocks outside the changed regions: every valid block's (development
+        # c692: regions flagged where the unmodelled aliasing of a true resampling was
+        # strongest left 5 blocks; moved objects shift power between places, not
+        # between frequencies, so the whole scene's spectrum still holds)
+        halves = split_halves(block_origins(inp.valid.shape, block_px=setup.block_px,
+                                            valid=inp.valid), setup.block_px,
+                              inp.valid.shape[1])
+    if halves is None:
         return model
 
     def se_on(img: list[np.ndarray], origins: list[tuple[int, int]]) -> float:
         return spectral_error(greys(img), inp.grey, block_px=setup.block_px, origins=origins)
 
-    pitches = PITCH_SCAN
-    # the power spectrum barely constrains the kernel, and where the transfer cannot see
-    # resampling its fit of the kernel is arbitrary: scan the two kernels processors use
-    grid = [(float(a), float(p)) for a in (OPENCV_A, KEYS_A) for p in pitches]
-
-    def at(a: float, p: float) -> dict[str, float]:
-        return {"native_pitch_px": p, "cubic_a": a}
-
-    # each pair at its own Q: the simulator keeps the fine image's DCT for the whole scan
-    fitted = {(float(a), float(p)): with_resampling(setup, model, at(float(a), float(p)))
-              for p in pitches for a in (OPENCV_A, KEYS_A)}
-    rendered = {g: delivered(m) for g, (m, _) in fitted.items()}
-    imgs = [rendered[g] for g in grid]
+    # each (kernel, pitch) at its own Q: the simulator keeps the fine image's DCT for the scan
+    fitted = scan_on_transfer(setup, model)
+    grid = list(fitted)
+    imgs = [delivered(fitted[g][0]) for g in grid]
     none = delivered(model)
     se_h = np.array([[se_on(im, h) for h in halves] for im in imgs])   # (kernel·pitch, half)
     se0 = [se_on(none, h) for h in halves]
+
+    def best(scores: np.ndarray, origins: list[tuple[int, int]]) -> ForwardModel:
+        # the scan's best pairs with pitch, Q and phase refined together on these
+        # blocks' spectrum, the lowest kept; under JPEG (as _pitch_on_spectrum) the
+        # scan's best pair as scanned
+        if model.compression is not None:
+            return fitted[grid[int(np.argmin(scores))]][0]
+
+        def score(m: ForwardModel) -> float:
+            return se_on(delivered(m), origins)
+
+        starts = [fitted[grid[j]][0] for j in refine_starts(scores, grid)]
+        return _refined_from(setup, starts, score)[0]
+
     heldout = []
-    for k in (0, 1):  # choose on half k, validate on the other
-        j = int(np.argmin(se_h[:, k]))
-        heldout.append(1.0 - se_h[j, 1 - k] / max(se0[1 - k], 1e-12))
+    for k in (0, 1):  # choose (and refine) on half k, validate on the other
+        heldout.append(1.0 - se_on(delivered(best(se_h[:, k], halves[k])), halves[1 - k])
+                       / max(se0[1 - k], 1e-12))
     if min(heldout) < 1.0 - ALIASING_SPECTRAL_GAIN_SPLIT:
         return model
     j = int(np.argmin(se_h.sum(axis=1)))
-    if grid[j][1] in (pitches[0], pitches[-1]):
+    chosen = best(se_h.sum(axis=1), halves[0] + halves[1])
+    fit_p = (fitted[grid[j]][1] if chosen is fitted[grid[j]][0]
+             else _moved_fit(setup, fitted[grid[j]][1], chosen))
+    if _pinned(chosen.blur[name]["native_pitch_px"]):
         # pinned at an end of the scan: the pitch stands in for a shape resampling does
         # not have (as a fitted parameter at a bound, never claimed by name; development:
         # 1.15 px where the truth was atmosphere at Q 4)
         return model
-    chosen, fit_p = fitted[grid[j]]
     # the transfer's view (reported): Q refitted with the spectrally fitted resampling
     # held; its uncertainty the scan's steps: 0.05 px in pitch, the kernel one of two
     # (0.25 apart)
@@ -161,6 +195,166 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     sel.cv_gain[name] = float(min(heldout))
     sel.final = step_fit
     return chosen
+
+
+def phase_realisations(inp: Inputs, m: ForwardModel, rng_seed: int) -> list[np.ndarray]:
+    """The delivered simulation of ``m`` (which holds a resampling) with its native grid at
+    four phases, half a cell apart along each axis (with noise claimed, one noise
+    realisation each): their mean Welch power is the expected spectrum over a phase the
+    model does not fit. Under JPEG one phase's render decides by its quantisation too: a
+    0.01 DN change of the render (round 22's renderer) moved route 2's held-out gains by
+    up to 0.4 (development c468, c682)."""
+    half = 0.5 * float(m.blur["resampling"]["native_pitch_px"])
+    r0, c0 = m.native_phase_px
+    out: list[np.ndarray] = []
+    for k, (dr, dc) in enumerate(((0.0, 0.0), (half, 0.0), (0.0, half), (half, half))):
+        out += m.without(native_phase_px=(r0 + dr, c0 + dc)).delivered_realisations(
+            inp.simulate, [np.random.default_rng(rng_seed + k)], quantized=inp.quantized)
+    return out
+
+
+def _pinned(pitch_px: float) -> bool:
+    """At (within 0.01 px of) an end of :data:`PITCH_SCAN`."""
+    return pitch_px <= PITCH_SCAN[0] + 0.01 or pitch_px >= PITCH_SCAN[-1] - 0.01
+
+
+def scan_on_transfer(setup: SpectralSetup, model: ForwardModel
+                     ) -> dict[tuple, tuple[ForwardModel, TransferFit]]:
+    """Route 2's scan: each (kernel, pitch) of the two kernels processors use (OpenCV's
+    a = −0.75, Keys' −0.5; the power spectrum barely constrains the kernel, and where the
+    transfer cannot see resampling its fit of the kernel is arbitrary) × :data:`PITCH_SCAN`,
+    with Q refitted on the transfer (:func:`with_resampling`); keys (kernel, pitch).
+
+    Where ``model`` claims noise, each pair also without it (keys (kernel, pitch,
+    "no noise")): power beyond the optics' reach that the model read as noise may be the
+    native grid's aliases (development c252, c574, c692: noise claimed in noise-free
+    scenes at Q 0.95-1.35, hiding the resampling); the engine judges the noise again
+    against the model chosen."""
+    out: dict[tuple, tuple[ForwardModel, TransferFit]] = {
+        (float(a), float(p)): with_resampling(setup, model, {"native_pitch_px": float(p),
+                                                             "cubic_a": float(a)})
+        for a in (OPENCV_A, KEYS_A) for p in PITCH_SCAN}
+    if model.noise is not None and model.noise.claimed:
+        out |= {(*g, "no noise"): (m.without(noise=None), f) for g, (m, f) in list(out.items())}
+    return out
+
+
+def refine_starts(scores: np.ndarray, grid: list[tuple],
+                  n: int = REFINE_STARTS, min_sep_px: float = REFINE_START_SEP_PX) -> list[int]:
+    """Indices of the ``n`` lowest ``scores`` of the scan ``grid`` ((kernel, pitch, ...)
+    keys) whose pitches lie at least ``min_sep_px`` apart: the aliasing's spectral minimum is
+    narrow (±0.05 px) and the scan's Q only roughly right, so the lowest scanned pair may
+    sit on a side minimum."""
+    out: list[int] = []
+    for j in np.argsort(scores, kind="stable"):
+        if all(abs(grid[j][1] - grid[i][1]) >= min_sep_px for i in out):
+            out.append(int(j))
+        if len(out) == n:
+            break
+    return out
+
+
+def _refined_from(setup: SpectralSetup, starts: list[ForwardModel],
+                  se_of: Callable[[ForwardModel], float]) -> tuple[ForwardModel, float]:
+    """The lowest-scoring of ``starts`` (models with a resampling) and of their pitch, Q
+    and native-grid phase refined together on the power spectrum
+    (:func:`~geosim.diagnose.resampling_refine.refine_resampling`, within the pitch scan
+    and the Q grid; each start's kernel and other blurs held).
+
+    Neither a start nor a refinement at a bound (Q at the bottom of the grid, the pitch at
+    an end of the scan) is taken; where every start is, the first is returned.
+
+    Returns
+    -------
+    model, spectral error
+        The best model (one of ``starts`` itself where no refinement scores lower) and
+        its score.
+    """
+    name = "resampling"
+
+    def at_bound(q: float, pitch_px: float) -> bool:
+        # the search or the scan there stands in for something else (as blur_at_q_floor
+        # and route 2's pinned pitch): development c16, c177 (Q 1.64, 0.85) had Q driven
+        # to the bottom of the grid, with a false atmosphere held or the noise dropped
+        return q <= Q_FLOOR_REL * float(setup.q_grid[0]) or _pinned(pitch_px)
+
+    free = [m for m in starts if not at_bound(m.q, m.blur[name]["native_pitch_px"])]
+    if not free:
+        return starts[0], se_of(starts[0])
+    se_best, i = min((se_of(m), i) for i, m in enumerate(free))
+    best = free[i]
+    for m in free:
+        a = float(m.blur[name].get("cubic_a", OPENCV_A))
+
+        def at(p: float, q: float, ph: tuple[float, float], m: ForwardModel = m,
+               a: float = a) -> ForwardModel:
+            return m.without(q=q, blur={**m.blur, name: {"native_pitch_px": p, "cubic_a": a}},
+                             native_phase_px=ph)
+
+        r = refine_resampling(lambda p, q, ph, at=at: se_of(at(p, q, ph)),
+                              float(m.blur[name]["native_pitch_px"]), float(m.q),
+                              m.native_phase_px,
+                              pitch_bounds=(float(PITCH_SCAN[0]), float(PITCH_SCAN[-1])),
+                              q_bounds=(float(setup.q_grid[0]), float(setup.q_grid[-1])))
+        if r.spectral_error < se_best and not at_bound(r.q, r.native_pitch_px):
+            best, se_best = at(r.native_pitch_px, r.q, r.phase_px), r.spectral_error
+    return best, se_best
+
+
+def _on_spectrum(setup: SpectralSetup, model: ForwardModel,
+                 se_of: Callable[[ForwardModel], float]) -> ForwardModel:
+    """A resampling the transfer chose (route 1, or forward selection), its pitch and Q
+    refined together on the power spectrum from its own values and from the best pairs of
+    route 2's scan (:func:`scan_on_transfer`, :func:`refine_starts`): the transfer, made
+    incoherent by the aliasing below Q ≈ 2, can hold pitch and Q far from the spectrum's
+    minimum (development c09: 1.26 px at Q 1.76 for 1.63 px at Q 1.01). ``model`` itself
+    where nothing scores lower, and under JPEG (as :func:`_pitch_on_spectrum`)."""
+    name = "resampling"
+    if model.compression is not None:
+        return model
+    fitted = scan_on_transfer(setup, model)
+    grid = list(fitted)
+    scores = np.array([se_of(fitted[g][0]) for g in grid])
+    a0 = float(model.blur[name].get("cubic_a", OPENCV_A))
+    own = [model] if a0 in (OPENCV_A, KEYS_A) else [
+        model.without(blur={**model.blur, name: {**model.blur[name], "cubic_a": a}})
+        for a in (OPENCV_A, KEYS_A)]   # a kernel at the fit's bound: each real one
+    if model.noise is not None and model.noise.claimed:   # as scan_on_transfer
+        own += [m.without(noise=None) for m in own]
+    best, se_best = _refined_from(setup, own + [fitted[grid[j]][0]
+                                                for j in refine_starts(scores, grid)], se_of)
+    return best if se_best < se_of(model) else model
+
+
+def _moved_fit(setup: SpectralSetup, fit: TransferFit, model: ForwardModel) -> TransferFit:
+    """``fit`` with ``model``'s Q and resampling (refined on the spectrum), its χ²
+    re-evaluated there; the pitch's uncertainty the scan's step (:data:`PITCH_STEP`)."""
+    name = "resampling"
+    eff = {**fit.effects, name: dict(model.blur[name])}
+    chi2 = evaluate_chi2(setup.full, q=model.q, gain=fit.gain, effects=eff)
+    sigmas = {**fit.sigmas, name: {**fit.sigmas.get(name, {}),  # type: ignore[dict-item]
+                                   "native_pitch_px": PITCH_STEP}}
+    return replace(fit, q=float(model.q), effects=eff, chi2=chi2, sigmas=sigmas)
+
+
+def _refine_selected(sel: BlurSelection, setup: SpectralSetup, model: ForwardModel,
+                     se_of: Callable[[ForwardModel], float]) -> ForwardModel:
+    """:func:`_on_spectrum` for a resampling that forward selection chose (its pitch already
+    moved by :func:`_selected_pitch_on_spectrum`): where the spectrum puts pitch and Q
+    elsewhere, ``sel``'s final fit and its steps from the resampling's on move there."""
+    name = "resampling"
+    k = next((i for i, st in enumerate(sel.steps) if st.name == name), None)
+    if k is None:
+        return model
+    refined = _on_spectrum(setup, model, se_of)
+    if refined is model:
+        return model
+    for j in range(k, len(sel.steps)):
+        st = sel.steps[j]
+        if name in st.fit.effects:
+            sel.steps[j] = replace(st, fit=_moved_fit(setup, st.fit, refined))
+    sel.final = _moved_fit(setup, sel.final, refined)
+    return refined
 
 
 def with_resampling(setup: SpectralSetup, model: ForwardModel, params: dict[str, float]
