@@ -12,7 +12,7 @@ import rasterio
 from scipy import ndimage
 
 from geosim.align import phase_correlate
-from geosim.diagnose.coregister import estimate_shift, integer_shift
+from geosim.diagnose.coregister import _block_shift, estimate_shift, integer_shift
 from geosim.physics.geometry import fourier_shift
 
 
@@ -73,3 +73,18 @@ def test_search_radius_and_uncorrelatable_input(realdata):
     flat = np.full(grey.shape, 7.0)
     assert integer_shift(flat, grey) == (0, 0)               # nothing to correlate
     assert integer_shift(grey[:20, :20], grey[:20, :20]) == (0, 0)   # too small
+
+
+def test_featureless_block_has_zero_correlation_without_warnings():
+    """A uniform block (a saturated roof, a flat object in the scene; fresh round-22 case
+    c718 on the sample site raised 'invalid value in scalar divide') measures no shift:
+    its correlation is 0, below any threshold, not NaN."""
+    import warnings
+
+    flat = np.full((16, 16), 200.0)
+    textured = np.random.default_rng(0).normal(100.0, 10.0, (16, 16))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for s, r in ((flat, textured), (textured, flat), (flat, flat)):
+            assert _block_shift(s, r, 0.2)[2] == 0.0
+    assert _block_shift(textured, textured, 0.2)[2] == pytest.approx(1.0)

@@ -206,8 +206,10 @@ def _block_shift(s: np.ndarray, r: np.ndarray, f_max: float) -> tuple[float, flo
     ph = np.angle(x[use] ** 2)
     a = np.column_stack([-4 * np.pi * fx[use], -4 * np.pi * fy[use]]) * np.sqrt(wgt)[:, None]
     sol, *_ = np.linalg.lstsq(a, ph * np.sqrt(wgt), rcond=None)
-    # quality: normalised correlation of the blocks
-    rho = float(np.sum(np.real(x)) / np.sqrt(np.sum(np.abs(fs) ** 2) * np.sum(np.abs(fr) ** 2)))
+    # quality: normalised correlation of the blocks (0 for a featureless block, e.g. a
+    # saturated or uniform object: no shift is measured there, as below any threshold)
+    norm = float(np.sqrt(np.sum(np.abs(fs) ** 2) * np.sum(np.abs(fr) ** 2)))
+    rho = float(np.sum(np.real(x))) / norm if norm > 0 else 0.0
     return float(sol[0]), float(sol[1]), rho
 
 
