@@ -42,8 +42,7 @@ from scipy import ndimage  # noqa: E402
 from geosim.degrade.core import (  # noqa: E402
     blur_coefficients,
     dct_coefficients,
-    n_coefficients,
-    optics_otf_dct,
+    optics_otf_below_cutoff,
 )
 from geosim.physics.cubic import cubic_resize  # noqa: E402
 from geosim.physics.native_grid import (  # noqa: E402
@@ -66,10 +65,14 @@ def uav_image(sat_px: int, seed: int = 0) -> np.ndarray:
     return 120 + 40 * img / img.std()
 
 
+def below_cutoff(coef: np.ndarray, q: float) -> np.ndarray:
+    """The optics' image as its DCT below the cut-off (what QSimulator.native keeps)."""
+    otf_k = optics_otf_below_cutoff(coef.shape[-2:], q=q, phi=PHI)
+    return coef[:, :otf_k.shape[0], :otf_k.shape[1]] * otf_k
+
+
 def render_dct(coef: np.ndarray, q: float, pitch: float) -> np.ndarray:
-    k = (n_coefficients(coef.shape[-2], q=q, phi=PHI), n_coefficients(coef.shape[-1], q=q,
-                                                                      phi=PHI))
-    ck = coef[:, :k[0], :k[1]] * optics_otf_dct(coef.shape[-2:], q=q, phi=PHI, n_coef=k)
+    ck = below_cutoff(coef, q)
     nat, cr, cc = native_area_dct(ck, coef.shape[-2:], PHI, pitch)
     n = coef.shape[-1] // PHI
     return native_to_product(nat, cr, cc, (n, n), -0.75)
@@ -123,9 +126,7 @@ def main() -> None:
                                       a.repeat),
     }
     # same Q, new pitch: the DCT form's filtered coefficients (or the fine image) kept
-    k_r = n_coefficients(coef.shape[-2], q=1.0, phi=PHI)
-    ck = coef[:, :k_r, :k_r] * optics_otf_dct(coef.shape[-2:], q=1.0, phi=PHI,
-                                               n_coef=(k_r, k_r))
+    ck = below_cutoff(coef, 1.0)
     fine = blur_coefficients(coef, q=1.0, phi=PHI).astype(np.float32)
     n = a.sat_px
     times["dct_same_q_s"] = timed(lambda k: native_to_product(

@@ -250,6 +250,19 @@ def optics_otf_dct(shape: tuple[int, int], *, q: float, phi: int, obscuration: f
     return optics_otf(fy, fx, q=q, phi=phi, obscuration=obscuration)
 
 
+def optics_otf_below_cutoff(shape: tuple[int, int], *, q: float, phi: int,
+                            obscuration: float = 0.0,
+                            max_coef: tuple[int, int] | None = None) -> np.ndarray:
+    """:func:`optics_otf_dct` over only the DCT-II coefficients below the optics' cut-off
+    (:func:`n_coefficients` per axis, at most ``max_coef``): its shape (K_rows, K_cols) is
+    how many coefficients a filtered image keeps."""
+    k_r = n_coefficients(shape[0], q=q, phi=phi)
+    k_c = n_coefficients(shape[1], q=q, phi=phi)
+    if max_coef is not None:
+        k_r, k_c = min(k_r, max_coef[0]), min(k_c, max_coef[1])
+    return optics_otf_dct(shape, q=q, phi=phi, obscuration=obscuration, n_coef=(k_r, k_c))
+
+
 # ----------------------------------------------------------------------- blur
 
 def blur(image: np.ndarray, *, q: float, phi: int = 10, obscuration: float = 0.0,
@@ -685,10 +698,9 @@ class SpectralDegrader:
         if q < self.q_min * (1 - 1e-12):
             raise ValueError(f"q = {q} is below q_min = {self.q_min} this degrader was "
                              "prepared for")
-        k_r = min(self.n_coef[0], n_coefficients(self.shape[0], q=q, phi=self.phi))
-        k_c = min(self.n_coef[1], n_coefficients(self.shape[1], q=q, phi=self.phi))
-        transfer = optics_otf_dct(self.shape, q=q, phi=self.phi, obscuration=self.obscuration,
-                                  n_coef=(k_r, k_c))
+        transfer = optics_otf_below_cutoff(self.shape, q=q, phi=self.phi,
+                                           obscuration=self.obscuration, max_coef=self.n_coef)
+        k_r, k_c = transfer.shape
         a_r = self._basis_rows[:, :k_r]
         a_c = self._basis_cols[:, :k_c]
 

@@ -14,8 +14,7 @@ from geosim.degrade.core import (
     SpectralDegrader,
     dct_coefficients,
     degrade_array,
-    n_coefficients,
-    optics_otf_dct,
+    optics_otf_below_cutoff,
 )
 from geosim.physics import otf
 from geosim.physics.cubic import OPENCV_A
@@ -160,10 +159,8 @@ class QSimulator:
             # the optics' image as its DCT below the cut-off (the pitch and phase scans
             # reuse it): no inverse transform of the fine image
             coef = self._native_coef[1]
-            k = (n_coefficients(coef.shape[-2], q=q, phi=self.phi),
-                 n_coefficients(coef.shape[-1], q=q, phi=self.phi))
-            otf_k = optics_otf_dct(coef.shape[-2:], q=q, phi=self.phi, n_coef=k)
-            self._native_fine = (ck, coef[:, :k[0], :k[1]] * otf_k)
+            otf_k = optics_otf_below_cutoff(coef.shape[-2:], q=q, phi=self.phi)
+            self._native_fine = (ck, coef[:, :otf_k.shape[0], :otf_k.shape[1]] * otf_k)
             self._native_low = None
         band_coef = self._native_fine[1]
         fine_shape = self._native_coef[1].shape[-2:]   # type: ignore[index]

@@ -327,14 +327,21 @@ def _on_spectrum(setup: SpectralSetup, model: ForwardModel,
 
 
 def _moved_fit(setup: SpectralSetup, fit: TransferFit, model: ForwardModel) -> TransferFit:
-    """``fit`` with ``model``'s Q and resampling (refined on the spectrum), its χ²
-    re-evaluated there; the pitch's uncertainty the scan's step (:data:`PITCH_STEP`)."""
+    """``fit`` with ``model``'s Q and resampling (refined on the spectrum)
+    (:func:`_fit_with`)."""
+    return _fit_with(setup, fit, float(model.q), model.blur["resampling"])
+
+
+def _fit_with(setup: SpectralSetup, fit: TransferFit, q: float, params: dict[str, float]
+              ) -> TransferFit:
+    """``fit`` at Q ``q`` with resampling ``params`` moved there on the spectrum, its χ²
+    re-evaluated; the pitch's uncertainty the scan's step (:data:`PITCH_STEP`)."""
     name = "resampling"
-    eff = {**fit.effects, name: dict(model.blur[name])}
-    chi2 = evaluate_chi2(setup.full, q=model.q, gain=fit.gain, effects=eff)
+    eff = {**fit.effects, name: dict(params)}
+    chi2 = evaluate_chi2(setup.full, q=q, gain=fit.gain, effects=eff)
     sigmas = {**fit.sigmas, name: {**fit.sigmas.get(name, {}),  # type: ignore[dict-item]
                                    "native_pitch_px": PITCH_STEP}}
-    return replace(fit, q=float(model.q), effects=eff, chi2=chi2, sigmas=sigmas)
+    return replace(fit, q=q, effects=eff, chi2=chi2, sigmas=sigmas)
 
 
 def _refine_selected(sel: BlurSelection, setup: SpectralSetup, model: ForwardModel,
@@ -342,19 +349,24 @@ def _refine_selected(sel: BlurSelection, setup: SpectralSetup, model: ForwardMod
     """:func:`_on_spectrum` for a resampling that forward selection chose (its pitch already
     moved by :func:`_selected_pitch_on_spectrum`): where the spectrum puts pitch and Q
     elsewhere, ``sel``'s final fit and its steps from the resampling's on move there."""
-    name = "resampling"
-    k = next((i for i, st in enumerate(sel.steps) if st.name == name), None)
-    if k is None:
+    if not any(st.name == "resampling" for st in sel.steps):
         return model
     refined = _on_spectrum(setup, model, se_of)
     if refined is model:
         return model
-    for j in range(k, len(sel.steps)):
-        st = sel.steps[j]
-        if name in st.fit.effects:
-            sel.steps[j] = replace(st, fit=_moved_fit(setup, st.fit, refined))
+    _move_steps(sel, lambda f: _moved_fit(setup, f, refined))
     sel.final = _moved_fit(setup, sel.final, refined)
     return refined
+
+
+def _move_steps(sel: BlurSelection, moved: Callable[[TransferFit], TransferFit]) -> None:
+    """Replace the fits of ``sel``'s steps from the resampling's on (their claims) that
+    hold a resampling by ``moved(fit)``."""
+    k = next(i for i, st in enumerate(sel.steps) if st.name == "resampling")
+    for j in range(k, len(sel.steps)):
+        st = sel.steps[j]
+        if "resampling" in st.fit.effects:
+            sel.steps[j] = replace(st, fit=moved(st.fit))
 
 
 def with_resampling(setup: SpectralSetup, model: ForwardModel, params: dict[str, float]
@@ -409,12 +421,9 @@ def _pitch_on_spectrum(setup: SpectralSetup, fit: TransferFit, model: ForwardMod
     if scan[best] >= se_fit or best in (PITCH_SCAN[0], PITCH_SCAN[-1]):
         # an end of the scan stands in for a pitch beyond it (as route 2 refuses it)
         return fit, model
-    eff = {**fit.effects, name: {**params, "native_pitch_px": best}}
-    chi2 = evaluate_chi2(setup.full, q=fit.q, gain=fit.gain, effects=eff)
-    sigmas = {**fit.sigmas, name: {**fit.sigmas.get(name, {}),  # type: ignore[dict-item]
-                                   "native_pitch_px": PITCH_STEP}}
-    return (replace(fit, effects=eff, chi2=chi2, sigmas=sigmas),
-            model.without(blur={**model.blur, name: eff[name]}))
+    moved = {**params, "native_pitch_px": best}
+    return (_fit_with(setup, fit, fit.q, moved),
+            model.without(blur={**model.blur, name: moved}))
 
 
 def _selected_pitch_on_spectrum(sel: BlurSelection, setup: SpectralSetup,
@@ -423,18 +432,13 @@ def _selected_pitch_on_spectrum(sel: BlurSelection, setup: SpectralSetup,
     """:func:`_pitch_on_spectrum` for a resampling that forward selection chose: the pitch
     moved in ``sel``'s final fit and in its steps from the resampling's on (their claims)."""
     name = "resampling"
-    k = next((i for i, st in enumerate(sel.steps) if st.name == name), None)
-    if k is None:
+    if not any(st.name == name for st in sel.steps):
         return model
     fit, moved = _pitch_on_spectrum(setup, sel.final, model, se_of(model), se_of)
     if moved is model:
         return model
     params = dict(moved.blur[name])
-    for j in range(k, len(sel.steps)):
-        st = sel.steps[j]
-        if name in st.fit.effects:
-            sel.steps[j] = replace(st, fit=replace(st.fit, effects={**st.fit.effects,
-                                                                     name: dict(params)}))
+    _move_steps(sel, lambda f: replace(f, effects={**f.effects, name: dict(params)}))
     sel.final = fit
     return moved
 

@@ -14,7 +14,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-__all__ = ["OPENCV_A", "KEYS_A", "keys_kernel", "cubic_mtf", "cubic_resize"]
+__all__ = ["OPENCV_A", "KEYS_A", "keys_kernel", "cubic_mtf", "cubic_resize", "cubic_weights"]
 
 #: OpenCV's INTER_CUBIC
 OPENCV_A = -0.75
@@ -50,16 +50,23 @@ def cubic_mtf(nu: np.ndarray, a: float = OPENCV_A) -> np.ndarray:
                                                                     right=0.0)
 
 
-def _weights(n_in: int, n_out: int, a: float) -> np.ndarray:
-    """(n_out, n_in) interpolation matrix with OpenCV's geometry: output pixel centre j maps
-    to input coordinate (j + 0.5) · n_in / n_out − 0.5; edge samples replicated."""
-    src = (np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5
+def cubic_weights(src: np.ndarray, n_in: int, a: float) -> np.ndarray:
+    """(len(src), n_in) cubic-convolution weights of ``n_in`` samples at the input
+    coordinates ``src`` (in samples, 0 at the first sample's centre); edge samples
+    replicated, as OpenCV does."""
+    src = np.asarray(src, dtype=float)
     base = np.floor(src).astype(int)
-    w = np.zeros((n_out, n_in))
-    rows = np.arange(n_out)
+    w = np.zeros((len(src), n_in))
+    rows = np.arange(len(src))
     for t in range(-1, 3):
         np.add.at(w, (rows, np.clip(base + t, 0, n_in - 1)), keys_kernel(src - (base + t), a))
     return w
+
+
+def _weights(n_in: int, n_out: int, a: float) -> np.ndarray:
+    """(n_out, n_in) interpolation matrix with OpenCV's geometry: output pixel centre j maps
+    to input coordinate (j + 0.5) · n_in / n_out − 0.5."""
+    return cubic_weights((np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5, n_in, a)
 
 
 def cubic_resize(band: np.ndarray, shape: tuple[int, int], a: float = OPENCV_A) -> np.ndarray:

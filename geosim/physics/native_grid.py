@@ -12,7 +12,7 @@ true one).
 :func:`native_area` integrates a fine-grid image over native pixels at any pitch and phase
 (overlap weights, exact for box detectors on the fine pixels' piecewise-constant image);
 :func:`native_to_product` interpolates native samples onto product pixel centres by cubic
-convolution (:func:`geosim.physics.cubic.keys_kernel`, edge samples replicated as OpenCV
+convolution (:func:`geosim.physics.cubic.cubic_weights`, edge samples replicated as OpenCV
 does). Pure numerics, no I/O.
 """
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geosim.physics.cubic import OPENCV_A, keys_kernel
+from geosim.physics.cubic import OPENCV_A, cubic_weights
 
 __all__ = ["native_edges", "native_area", "native_area_dct", "native_to_product",
            "render_through_native"]
@@ -78,8 +78,12 @@ def native_area(fine: np.ndarray, phi: int, native_pitch_px: float,
     wr = _area_weights(er * phi, rows * phi).astype(np.float32)
     wc = _area_weights(ec * phi, cols * phi).astype(np.float32)
     img = np.asarray(fine[..., :rows * phi, :cols * phi], dtype=np.float32)
-    out = (wr @ img @ wc.T).astype(float)
-    return out, (er[:-1] + er[1:]) / 2, (ec[:-1] + ec[1:]) / 2
+    return (wr @ img @ wc.T).astype(float), _centres(er), _centres(ec)
+
+
+def _centres(edges: np.ndarray) -> np.ndarray:
+    """Centres of the native pixels between ``edges``."""
+    return (edges[:-1] + edges[1:]) / 2
 
 
 def _dct_box_matrix(edges: np.ndarray, n: int, n_coef: int) -> np.ndarray:
@@ -112,21 +116,14 @@ def native_area_dct(coef: np.ndarray, fine_shape: tuple[int, int], phi: int,
     ec = native_edges(cols, native_pitch_px, phase_px[1])
     mr = _dct_box_matrix(np.clip(er * phi, 0.0, rows * phi), n_r, coef.shape[-2])
     mc = _dct_box_matrix(np.clip(ec * phi, 0.0, cols * phi), n_c, coef.shape[-1])
-    return mr @ coef @ mc.T, (er[:-1] + er[1:]) / 2, (ec[:-1] + ec[1:]) / 2
+    return mr @ coef @ mc.T, _centres(er), _centres(ec)
 
 
 def _cubic_weights(centres: np.ndarray, n_out: int, a: float) -> np.ndarray:
     """(n_out, n_in) cubic-convolution weights from samples at ``centres`` (evenly
     spaced, product-pixel coordinates) to product pixel centres j + 0.5."""
     p = centres[1] - centres[0] if len(centres) > 1 else 1.0
-    src = (np.arange(n_out) + 0.5 - centres[0]) / p      # in native samples
-    base = np.floor(src).astype(int)
-    w = np.zeros((n_out, len(centres)))
-    rows = np.arange(n_out)
-    for t in range(-1, 3):
-        np.add.at(w, (rows, np.clip(base + t, 0, len(centres) - 1)),
-                  keys_kernel(src - (base + t), a))
-    return w
+    return cubic_weights((np.arange(n_out) + 0.5 - centres[0]) / p, len(centres), a)
 
 
 def native_to_product(native: np.ndarray, centres_row: np.ndarray, centres_col: np.ndarray,
