@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import ndimage
 
 from geosim.diagnose.context import FitWindow
 from geosim.diagnose.exact_family import EXACT_FAMILIES, exact_duel
@@ -19,12 +20,15 @@ from geosim.diagnose.spectra import block_origins, screen_blocks
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.errors import DiagnosisError
 
-__all__ = ["SpectralSetup", "spectral_setup", "select_with_q_room", "quadrant_folds",
-           "exact_anisotropic", "adopt", "ISOTROPIC", "MIN_BLOCKS", "Q_EXTEND", "Q_GRID_STEP",
-           "Q_MAX"]
+__all__ = ["SpectralSetup", "spectral_setup", "change_taper", "select_with_q_room",
+           "quadrant_folds", "exact_anisotropic", "adopt", "ISOTROPIC", "MIN_BLOCKS",
+           "Q_EXTEND", "Q_GRID_STEP", "Q_MAX", "TAPER_SIGMA_PX"]
 
 #: Welch blocks wanted for a stable transfer-function estimate
 MIN_BLOCKS = 16
+#: σ (px) of the Gaussian edge with which the changed regions are tapered out of both
+#: images where they leave too few whole blocks (:func:`change_taper`)
+TAPER_SIGMA_PX = 1.5
 #: Q grid extension when the fitted Q is pinned at its upper end (factor, largest Q)
 Q_EXTEND = 1.5
 #: ratio of neighbouring Q values of the grid of exact simulations
@@ -48,6 +52,17 @@ class SpectralSetup:
     #: the bins the transfer fits use (under JPEG: where its linearised transfer was
     #: measured, :meth:`~geosim.diagnose.jpeg_transfer.JpegTransfer.measured_at`); None: all
     keep: BinFilter | None = None
+    #: the real scene's grey levels as the fits see them (tapered where ``taper`` is set;
+    #: None: ``Inputs.grey`` as it is)
+    real_grey: np.ndarray | None = None
+    #: weights (rows, cols) in [0, 1] with which the changed regions were tapered out of
+    #: the real scene and every simulation (:func:`change_taper`); None: not tapered
+    taper: np.ndarray | None = None
+
+    def tapered(self, img: np.ndarray) -> np.ndarray:
+        """A grey image (rows, cols) as the fits see it: with the changed regions tapered
+        out as they were from the simulations (unchanged without a taper)."""
+        return img if self.taper is None else _apply_taper(img, self.taper)
 
 
 def adopt(model: ForwardModel, sel: BlurSelection) -> ForwardModel:
@@ -109,19 +124,25 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
     else:
         sims_grey = [grey(model.sim_at(inp.simulate, q)) for q in q_grid]
     base_g = grey(model.sim_at(inp.simulate, inp.q_base))
+    real_g = inp.grey
     block_px = inp.block_px
     while True:  # smaller Welch blocks when changes leave too few whole blocks
         origins = block_origins((rows, cols), block_px=block_px, valid=window.mask)
-        origins, rho = screen_blocks(base_g, inp.grey, origins, block_px)
+        origins, rho = screen_blocks(base_g, real_g, origins, block_px)
         if len(origins) >= MIN_BLOCKS or block_px <= 16:
             break
         block_px //= 2
-    if len(origins) < 8:
-        # changed regions cover most of a small scene: use every valid block rather than
-        # none (the changes then lower the coherence, which the fit weights by)
+    taper = None
+    if len(origins) < MIN_BLOCKS and not window.mask[inp.valid].all():
+        # changed regions scattered over a small scene leave too few whole blocks even of
+        # 16 px: they are tapered out of the scene and every simulation alike, and every
+        # valid block is used (see change_taper)
+        taper = change_taper(window.mask, inp.valid)
+        real_g = _apply_taper(inp.grey, taper)
+        sims_grey = [_apply_taper(s, taper) for s in sims_grey]
         block_px = inp.block_px
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
-        rho = np.zeros(len(origins))
+        origins, rho = screen_blocks(_apply_taper(base_g, taper), real_g, origins, block_px)
     if len(origins) < 8:  # hard minimum
         raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
                              "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
@@ -129,7 +150,7 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
     keep = jpeg.measured_at if jpeg is not None else None
 
     def spectral_data(blocks: list[tuple[int, int]]) -> SpectralData:
-        return build_spectral_data(sims_grey, q_grid, inp.grey, origins=blocks,
+        return build_spectral_data(sims_grey, q_grid, real_g, origins=blocks,
                                    block_px=block_px, keep=keep)
 
     full = spectral_data(origins)
@@ -140,7 +161,33 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
             train = [o for j, gg in enumerate(groups) if j != k for o in gg]
             folds.append((spectral_data(train), spectral_data(g)))
     return SpectralSetup(q_grid=q_grid, sims_grey=sims_grey, origins=origins, block_px=block_px,
-                         full=full, folds=folds, n_screened=len(rho) - len(origins), keep=keep)
+                         full=full, folds=folds, n_screened=len(rho) - len(origins), keep=keep,
+                         real_grey=real_g, taper=taper)
+
+
+def change_taper(mask: np.ndarray, valid: np.ndarray,
+                 sigma_px: float = TAPER_SIGMA_PX) -> np.ndarray:
+    """Weights (rows, cols) in [0, 1] that taper the changed regions out of an image.
+
+    ``mask`` is True where the fit may look (valid and outside the changed regions, which
+    :func:`~geosim.diagnose.locate.regions_mask` already dilates); the weight is its
+    Gaussian blur (σ ``sigma_px``), 0 outside ``valid``. Moved cattle scattered over a
+    128 px scene leave few whole 32 px (or 16 px) blocks outside them (development c264:
+    18 blobs, 34 % of the scene, 0 blocks of 32 px, 9 of 16 px), and the fit then lost the
+    blur it was there to find; with every block included as it was, the moved objects'
+    power, unshared by the simulation, biases the transfer low. Multiplying the real scene
+    and every simulation by the same smooth weight (around their means) keeps every
+    block's unchanged part: the Welch estimate of a transfer is unchanged where the
+    weight is 1, and its edge, smooth over a few pixels, acts on both images as the Hann
+    window does."""
+    w = ndimage.gaussian_filter(np.asarray(mask, float), sigma_px)
+    return np.where(valid, w, 0.0)
+
+
+def _apply_taper(img: np.ndarray, taper: np.ndarray) -> np.ndarray:
+    """``img`` pulled towards its weighted mean where ``taper`` < 1 (rows, cols)."""
+    c = float(np.sum(img * taper) / max(float(np.sum(taper)), 1e-12))
+    return c + taper * (img - c)
 
 
 def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
@@ -156,6 +203,6 @@ def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
     chosen effects, Q and gain are then the exact model's joint fit (on all blocks)."""
     groups = quadrant_folds(setup.origins, setup.block_px, inp.valid.shape)
     for family in EXACT_FAMILIES:
-        sel = exact_duel(inp.grey, setup.sims_grey, setup.q_grid, setup.full, setup.origins,
-                         groups, setup.block_px, sel, family, inp.q_base, setup.keep)
+        sel = exact_duel(setup.tapered(inp.grey), setup.sims_grey, setup.q_grid, setup.full,
+                         setup.origins, groups, setup.block_px, sel, family, inp.q_base, setup.keep)
     return sel

@@ -20,7 +20,7 @@ from geosim.diagnose.stage_blur import (
     exact_anisotropic,
     select_with_q_room,
 )
-from geosim.diagnose.stage_inputs import Inputs, greys
+from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_jpeg import (
     jpeg_linearised,
     jpeg_quality_for_scale,
@@ -147,9 +147,11 @@ def dithered_refit(inp: Inputs, model: ForwardModel, setup: SpectralSetup, sel: 
 def expected_se(inp: Inputs, m: ForwardModel, setup: SpectralSetup) -> float:
     """Spectral error of ``m``'s delivered simulation (JPEG last, on the noisy product;
     with noise claimed, the mean of the realisations from :data:`DITHER_SEED`) on the
-    fit's blocks: its expected spectrum against the scene's."""
-    return spectral_error(greys(realisations(inp, m, DITHER_SEED)), inp.grey,
-                          block_px=setup.block_px, origins=setup.origins)
+    fit's blocks: its expected spectrum against the scene's (both tapered as the fit's
+    images are, :meth:`SpectralSetup.tapered`)."""
+    sims = [setup.tapered(grey(r)) for r in realisations(inp, m, DITHER_SEED)]
+    return spectral_error(sims, setup.tapered(inp.grey), block_px=setup.block_px,
+                          origins=setup.origins)
 
 
 def delivered_q(inp: Inputs, model: ForwardModel, setup: SpectralSetup) -> ForwardModel:
