@@ -36,7 +36,7 @@ from geosim.diagnose.fit import (
     TransferFit,
     used_bins,
 )
-from geosim.diagnose.spectra import hann2d
+from geosim.diagnose.spectra import apply_taper, hann2d
 from geosim.physics.otf import frequency_grid
 
 __all__ = ["ExactSimulations", "ExactBlocks", "exact_fit", "exact_cv_chi2", "DuelResult",
@@ -45,10 +45,16 @@ __all__ = ["ExactSimulations", "ExactBlocks", "exact_fit", "exact_cv_chi2", "Due
 
 class ExactSimulations:
     """Spectra of the Q-grid simulations (grey, co-registered, whole scene), reflect-padded
-    as :func:`geosim.physics.otf.apply_transfer` pads, for filtering by any blur."""
+    as :func:`geosim.physics.otf.apply_transfer` pads, for filtering by any blur.
 
-    def __init__(self, sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]) -> None:
+    ``taper``: weights (rows, cols) applied to every image after its blur
+    (:func:`~geosim.diagnose.spectra.apply_taper`), as changed regions were tapered out of
+    the real scene after the real blur acted; None: none."""
+
+    def __init__(self, sims_grey: Sequence[np.ndarray], q_grid: Sequence[float], *,
+                 taper: np.ndarray | None = None) -> None:
         sims = np.stack([np.asarray(s, float) for s in sims_grey])
+        self.taper = taper
         self.rows, self.cols = sims.shape[-2:]
         self.pad = min(max(16, max(self.rows, self.cols) // 8), min(self.rows, self.cols) - 1)
         p = np.pad(sims, ((0, 0), (self.pad, self.pad), (self.pad, self.pad)), mode="reflect")
@@ -57,7 +63,10 @@ class ExactSimulations:
         self.spectra = scipy.fft.rfft2(p, s=self.shape)
         self.fy, self.fx = frequency_grid(self.shape, real=True)
         self.log_q = np.log(np.asarray(q_grid, float))
-        self.sharpest = sims[0]
+        self.sharpest = self._tapered(sims[0])
+
+    def _tapered(self, img: np.ndarray) -> np.ndarray:
+        return img if self.taper is None else apply_taper(img, self.taper)
 
     def image(self, q: float, effects: dict[str, dict[str, float]]) -> np.ndarray:
         """The grey simulation at ``q`` (linear in log q between grid members) filtered by
@@ -73,7 +82,7 @@ class ExactSimulations:
                 raise ValueError(f"{name} is not a blur effect")
             spec = spec * eff.transfer(self.fy, self.fx, **params)
         img = scipy.fft.irfft2(spec, s=self.shape)
-        return img[self.pad:self.pad + self.rows, self.pad:self.pad + self.cols]
+        return self._tapered(img[self.pad:self.pad + self.rows, self.pad:self.pad + self.cols])
 
 
 @dataclass

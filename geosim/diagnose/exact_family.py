@@ -59,7 +59,8 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
                full: SpectralData, origins: list[tuple[int, int]],
                fold_groups: Sequence[Sequence[tuple[int, int]]], block_px: int,
                sel: BlurSelection, family: str, q_base: float,
-               keep: BinFilter | None = None) -> BlurSelection:
+               keep: BinFilter | None = None, *, taper: np.ndarray | None = None
+               ) -> BlurSelection:
     """Decide the claimed member of ``family`` by the exact model's χ² on all blocks.
 
     Parameters
@@ -82,6 +83,11 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
         The LV baseline Q (a second starting value).
     keep
         The bins the fits may use (as the fast fit's ``full`` was built with); None: all.
+    taper
+        Weights (rows, cols) with which changed regions were tapered out of ``grey`` and of
+        the fast fit's simulations (:func:`~geosim.diagnose.stage_blur.change_taper`): the
+        exact model tapers each render after its blur, as the real scene was tapered after
+        the real blur. None: no taper.
 
     Returns
     -------
@@ -99,7 +105,7 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
     qs = (sel.final.q, q_base)
     starts = {m: fit_transfer(full, [*others, m], q_starts=qs) for m in members}
     without = fit_transfer(full, others, q_starts=qs) if others else sel.null
-    sims = ExactSimulations(sims_grey, q_grid)
+    sims = ExactSimulations(sims_grey, q_grid, taper=taper)
     blocks = ExactBlocks.build(sims, grey, origins, block_px, keep)
     folds = []
     if len(fold_groups) >= 2:

@@ -167,6 +167,14 @@ def cross_spectrum(sim: np.ndarray, real: np.ndarray, *, block_px: int = 32,
                          n_blocks=n, block_px=block_px)
 
 
+def apply_taper(img: np.ndarray, taper: np.ndarray) -> np.ndarray:
+    """``img`` (rows, cols) pulled towards its ``taper``-weighted mean where the weight
+    (rows, cols, in [0, 1]) is below 1: ``c + taper · (img − c)``. Blocks cut from it keep
+    their content where the weight is 1 and lose it smoothly where it falls to 0."""
+    c = float(np.sum(img * taper) / max(float(np.sum(taper)), 1e-12))
+    return c + taper * (img - c)
+
+
 def screen_blocks(sim: np.ndarray, real: np.ndarray, origins: list[tuple[int, int]],
                   block_px: int, *, min_rho: float = 0.3, n_mad: float = 4.0
                   ) -> tuple[list[tuple[int, int]], np.ndarray]:

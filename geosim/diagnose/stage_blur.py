@@ -16,7 +16,7 @@ from geosim.diagnose.fit import BinFilter, SpectralData, build_spectral_data
 from geosim.diagnose.jpeg_transfer import JpegTransfer
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import BlurSelection, select_blur
-from geosim.diagnose.spectra import block_origins, screen_blocks
+from geosim.diagnose.spectra import apply_taper, block_origins, screen_blocks
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.errors import DiagnosisError
 
@@ -27,8 +27,11 @@ __all__ = ["SpectralSetup", "spectral_setup", "change_taper", "select_with_q_roo
 #: Welch blocks wanted for a stable transfer-function estimate
 MIN_BLOCKS = 16
 #: σ (px) of the Gaussian edge with which the changed regions are tapered out of both
-#: images where they leave too few whole blocks (:func:`change_taper`)
-TAPER_SIGMA_PX = 1.5
+#: images where they leave too few whole blocks (:func:`change_taper`): the taper's edge
+#: leaks the scene's strong low frequencies, unblurred in both images, towards higher
+#: ones and so biases a measured blur transfer towards 1 — by 6-11 % at 0.1-0.25 cycles/px
+#: with σ 1.5 px, 3-6 % with 3 px, on a scene half tapered (tests/test_diagnose_change_taper)
+TAPER_SIGMA_PX = 3.0
 #: Q grid extension when the fitted Q is pinned at its upper end (factor, largest Q)
 Q_EXTEND = 1.5
 #: ratio of neighbouring Q values of the grid of exact simulations
@@ -43,6 +46,7 @@ class SpectralSetup:
     """Q grid of exact simulations, Welch blocks and the block cross-validation folds."""
 
     q_grid: np.ndarray
+    #: the grey Q-grid simulations as rendered (not tapered: see ``taper``)
     sims_grey: list[np.ndarray]
     origins: list[tuple[int, int]]
     block_px: int
@@ -55,14 +59,16 @@ class SpectralSetup:
     #: the real scene's grey levels as the fits see them (tapered where ``taper`` is set;
     #: None: ``Inputs.grey`` as it is)
     real_grey: np.ndarray | None = None
-    #: weights (rows, cols) in [0, 1] with which the changed regions were tapered out of
-    #: the real scene and every simulation (:func:`change_taper`); None: not tapered
+    #: weights (rows, cols) in [0, 1] with which the changed regions are tapered out of
+    #: the real scene and of every simulation before its blocks are cut (``full`` and
+    #: ``folds`` were built so; the exact model tapers its renders, :func:`change_taper`);
+    #: None: not tapered
     taper: np.ndarray | None = None
 
     def tapered(self, img: np.ndarray) -> np.ndarray:
         """A grey image (rows, cols) as the fits see it: with the changed regions tapered
         out as they were from the simulations (unchanged without a taper)."""
-        return img if self.taper is None else _apply_taper(img, self.taper)
+        return img if self.taper is None else apply_taper(img, self.taper)
 
 
 def adopt(model: ForwardModel, sel: BlurSelection) -> ForwardModel:
@@ -138,19 +144,19 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
         # 16 px: they are tapered out of the scene and every simulation alike, and every
         # valid block is used (see change_taper)
         taper = change_taper(window.mask, inp.valid)
-        real_g = _apply_taper(inp.grey, taper)
-        sims_grey = [_apply_taper(s, taper) for s in sims_grey]
+        real_g = apply_taper(inp.grey, taper)
         block_px = inp.block_px
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
-        origins, rho = screen_blocks(_apply_taper(base_g, taper), real_g, origins, block_px)
+        origins, rho = screen_blocks(apply_taper(base_g, taper), real_g, origins, block_px)
     if len(origins) < 8:  # hard minimum
         raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
                              "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
                              "larger common extent")
     keep = jpeg.measured_at if jpeg is not None else None
+    fit_sims = sims_grey if taper is None else [apply_taper(s, taper) for s in sims_grey]
 
     def spectral_data(blocks: list[tuple[int, int]]) -> SpectralData:
-        return build_spectral_data(sims_grey, q_grid, real_g, origins=blocks,
+        return build_spectral_data(fit_sims, q_grid, real_g, origins=blocks,
                                    block_px=block_px, keep=keep)
 
     full = spectral_data(origins)
@@ -184,12 +190,6 @@ def change_taper(mask: np.ndarray, valid: np.ndarray,
     return np.where(valid, w, 0.0)
 
 
-def _apply_taper(img: np.ndarray, taper: np.ndarray) -> np.ndarray:
-    """``img`` pulled towards its weighted mean where ``taper`` < 1 (rows, cols)."""
-    c = float(np.sum(img * taper) / max(float(np.sum(taper)), 1e-12))
-    return c + taper * (img - c)
-
-
 def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
                       ) -> BlurSelection:
     """Choose the anisotropic, then the isotropic blur by the exact (window-aware) model
@@ -204,5 +204,6 @@ def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
     groups = quadrant_folds(setup.origins, setup.block_px, inp.valid.shape)
     for family in EXACT_FAMILIES:
         sel = exact_duel(setup.tapered(inp.grey), setup.sims_grey, setup.q_grid, setup.full,
-                         setup.origins, groups, setup.block_px, sel, family, inp.q_base, setup.keep)
+                         setup.origins, groups, setup.block_px, sel, family, inp.q_base, setup.keep,
+                         taper=setup.taper)
     return sel

@@ -145,15 +145,15 @@ def plot_data(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Spect
     q_grid, bp, org = setup.q_grid, setup.block_px, setup.origins
     g_base = fit_transfer(setup.full, [], fix_q=float(np.clip(inp.q_base, q_grid[0],
                                                               q_grid[-1]))).gain
-    cs_real = cross_spectrum(setup.sims_grey[0], setup.tapered(inp.grey), block_px=bp,
-                             origins=org)
+    sharpest = setup.tapered(setup.sims_grey[0])
+    cs_real = cross_spectrum(sharpest, setup.tapered(inp.grey), block_px=bp, origins=org)
     t_real = np.abs(cs_real.transfer)
     t_var = (1.0 - np.clip(cs_real.coherence, 1e-6, 1 - 1e-9)) / (
         2.0 * cs_real.n_blocks * np.clip(cs_real.coherence, 1e-6, 1.0)) * t_real**2
     bg_al = setup.tapered(grey(model.without(q=inp.q_base).sim_at(inp.simulate)))
-    g_base_t = g_base * np.abs(full_transfer(setup.sims_grey[0], bg_al, bp, org))
+    g_base_t = g_base * np.abs(full_transfer(sharpest, bg_al, bp, org))
     blur_only = setup.tapered(grey(model.without(seam=None).blurred(inp.simulate)))
-    g_ref_t = sel.final.gain * np.abs(full_transfer(setup.sims_grey[0], blur_only, bp, org))
+    g_ref_t = sel.final.gain * np.abs(full_transfer(sharpest, blur_only, bp, org))
     delivered_base = np.round(inp.base) if inp.quantized else inp.base
     p_real = cross_spectrum(inp.grey, inp.grey, block_px=bp, origins=ev_origins).s_ss
     p_base = cross_spectrum(grey(delivered_base), inp.grey, block_px=bp,

@@ -1,0 +1,120 @@
+"""Changed regions tapered out of the transfer fit (``stage_blur.change_taper``).
+
+Truth from outside the code under test: the real scene is the simulation at the true
+Q blurred once more by a Gaussian of known σ, whose transfer is exp(−2π²σ²f²), with
+bright "moved cattle" pasted only into it; the transfer the fit's Welch data measure
+(real over the simulation at the true Q) must be that Gaussian's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from geosim.diagnose.context import FitWindow
+from geosim.diagnose.model import ForwardModel
+from geosim.diagnose.spectra import block_origins
+from geosim.diagnose.stage_blur import MIN_BLOCKS, change_taper, spectral_setup
+from geosim.diagnose.stage_inputs import make_inputs
+from geosim.diagnose.stage_register import coregister
+
+N_PX = 128
+SIGMA_EXTRA_PX = 0.9
+Q_TRUE = 1.5
+
+
+def _scene(rng: np.random.Generator) -> np.ndarray:
+    """A textured ground (1/f-like), (rows, cols), DN."""
+    white = rng.normal(size=(N_PX, N_PX))
+    fy = np.fft.fftfreq(N_PX)[:, None]
+    fx = np.fft.fftfreq(N_PX)[None]
+    amp = 1.0 / np.maximum(np.hypot(fy, fx), 1.0 / N_PX)
+    g = np.real(np.fft.ifft2(np.fft.fft2(white) * amp))
+    return 100.0 + 25.0 * g / g.std()
+
+
+def _simulate(ground: np.ndarray):
+    def simulate(q: float) -> np.ndarray:
+        return ndimage.gaussian_filter(ground, 0.45 * q, mode="wrap")[np.newaxis]
+    return simulate
+
+
+def _case(seed: int = 3):
+    rng = np.random.default_rng(seed)
+    ground = _scene(rng)
+    simulate = _simulate(ground)
+    real = ndimage.gaussian_filter(simulate(Q_TRUE)[0], SIGMA_EXTRA_PX, mode="wrap")
+    # 25 bright cattle-sized discs spread over the scene (a jittered 5 × 5 grid): in the
+    # real scene only
+    rr, cc = np.mgrid[:N_PX, :N_PX]
+    hot = np.zeros((N_PX, N_PX), bool)
+    grid = (np.arange(5) + 0.5) * N_PX / 5
+    centres = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2)
+    for r0, c0 in centres + rng.uniform(-3, 3, size=centres.shape):
+        disc = np.hypot(rr - r0, cc - c0) <= 3.0
+        real[disc] += 60.0
+        hot |= disc
+    # the first pass's mask: the discs dilated as regions_mask dilates its regions
+    fit_mask = ~ndimage.binary_dilation(hot, np.ones((13, 13)))
+    return simulate, real[np.newaxis], fit_mask
+
+
+def _transfer_error(setup) -> float:
+    """RMS of ln(measured / true) of the extra blur's transfer over 0.04-0.2 cycles/px: the
+    measured one is |real / simulation at Q_TRUE| on the fit's bins."""
+    d = setup.full
+    measured = np.abs(d.t_real / d.g_at(Q_TRUE))
+    fr = np.hypot(d.fy, d.fx)
+    band = (fr > 0.04) & (fr < 0.2)
+    truth = np.exp(-2.0 * np.pi**2 * SIGMA_EXTRA_PX**2 * fr[band] ** 2)
+    return float(np.sqrt(np.mean(np.log(measured[band] / truth) ** 2)))
+
+
+def test_taper_weights_vanish_in_regions_and_reach_one_away_from_them() -> None:
+    mask = np.ones((64, 64), bool)
+    mask[15:35, 15:35] = False
+    valid = np.ones_like(mask)
+    valid[:, :4] = False
+    w = change_taper(mask, valid)
+    assert w.min() >= 0.0 and w.max() <= 1.0
+    # ≥ 6 px (2σ) inside the region (regions_mask has dilated the regions by 2 px already)
+    assert np.all(w[21:29, 21:29] < 0.03)
+    assert np.all(w[47:, 47:] > 0.999)
+    assert np.all(w[:, :4] == 0.0)               # outside the valid area
+
+
+def test_scattered_changes_are_tapered_and_the_transfer_is_the_true_one() -> None:
+    simulate, real, fit_mask = _case()
+    # the case is the one the taper is for: too few whole blocks outside the changes
+    assert len(block_origins(fit_mask.shape, block_px=16, valid=fit_mask)) < MIN_BLOCKS
+    inp = make_inputs(real, simulate, Q_TRUE, None, None, False, 0.5)
+    model = ForwardModel(q=Q_TRUE, blur={}, registration=coregister(inp))
+    window = FitWindow(mask=fit_mask, q_lo=0.7, q_hi=3.0, candidates=(),
+                       q_starts=(Q_TRUE, 1.5))
+    setup = spectral_setup(inp, model, window)
+    assert setup.taper is not None and setup.block_px == 32
+    assert len(setup.origins) >= MIN_BLOCKS
+    # the taper's edge biases the transfer towards 1 by a few per cent (TAPER_SIGMA_PX)
+    err_tapered = _transfer_error(setup)
+    assert err_tapered < 0.05, err_tapered
+
+    # the same blocks with the changes left in (what the fit used before the taper):
+    # the discs' power, which the simulation does not share, biases the transfer
+    everything = FitWindow(mask=np.ones_like(fit_mask), q_lo=0.7, q_hi=3.0, candidates=(),
+                           q_starts=(Q_TRUE, 1.5))
+    untapered = spectral_setup(inp, model, everything)
+    assert untapered.taper is None
+    err_untapered = _transfer_error(untapered)
+    assert err_untapered > 2.0 * err_tapered, (err_untapered, err_tapered)
+
+
+def test_no_taper_where_whole_blocks_remain() -> None:
+    simulate, real, _ = _case()
+    inp = make_inputs(real, simulate, Q_TRUE, None, None, False, 0.5)
+    model = ForwardModel(q=Q_TRUE, blur={}, registration=coregister(inp))
+    mask = np.ones((N_PX, N_PX), bool)
+    mask[:40, :40] = False      # one corner changed: plenty of whole blocks elsewhere
+    window = FitWindow(mask=mask, q_lo=0.7, q_hi=3.0, candidates=(), q_starts=(Q_TRUE, 1.5))
+    setup = spectral_setup(inp, model, window)
+    assert setup.taper is None and setup.real_grey is inp.grey
+    assert setup.tapered(inp.grey) is inp.grey
