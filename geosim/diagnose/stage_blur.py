@@ -56,9 +56,6 @@ class SpectralSetup:
     #: the bins the transfer fits use (under JPEG: where its linearised transfer was
     #: measured, :meth:`~geosim.diagnose.jpeg_transfer.JpegTransfer.measured_at`); None: all
     keep: BinFilter | None = None
-    #: the real scene's grey levels as the fits see them (tapered where ``taper`` is set;
-    #: None: ``Inputs.grey`` as it is)
-    real_grey: np.ndarray | None = None
     #: weights (rows, cols) in [0, 1] with which the changed regions are tapered out of
     #: the real scene and of every simulation before its blocks are cut (``full`` and
     #: ``folds`` were built so; the exact model tapers its renders, :func:`change_taper`);
@@ -148,6 +145,12 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
         block_px = inp.block_px
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
         origins, rho = screen_blocks(apply_taper(base_g, taper), real_g, origins, block_px)
+    if len(origins) < 8:
+        # still too few (most blocks unlike the simulation): every valid block as it is
+        # (the changes then lower the coherence, which the fit weights by)
+        taper, real_g, block_px = None, inp.grey, inp.block_px
+        origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
+        rho = np.zeros(len(origins))
     if len(origins) < 8:  # hard minimum
         raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
                              "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
@@ -168,7 +171,7 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
             folds.append((spectral_data(train), spectral_data(g)))
     return SpectralSetup(q_grid=q_grid, sims_grey=sims_grey, origins=origins, block_px=block_px,
                          full=full, folds=folds, n_screened=len(rho) - len(origins), keep=keep,
-                         real_grey=real_g, taper=taper)
+                         taper=taper)
 
 
 def change_taper(mask: np.ndarray, valid: np.ndarray,
@@ -181,11 +184,14 @@ def change_taper(mask: np.ndarray, valid: np.ndarray,
     128 px scene leave few whole 32 px (or 16 px) blocks outside them (development c264:
     18 blobs, 34 % of the scene, 0 blocks of 32 px, 9 of 16 px), and the fit then lost the
     blur it was there to find; with every block included as it was, the moved objects'
-    power, unshared by the simulation, biases the transfer low. Multiplying the real scene
-    and every simulation by the same smooth weight (around their means) keeps every
-    block's unchanged part: the Welch estimate of a transfer is unchanged where the
-    weight is 1, and its edge, smooth over a few pixels, acts on both images as the Hann
-    window does."""
+    power, which the simulation does not share, distorts the transfer (by 0.10-0.15 RMS in
+    ln on the test's scenes). Multiplying the real scene and every simulation by the same
+    smooth weight (around their means) keeps every block's unchanged part. The weight's
+    edge is not a blur: it leaks the scene's strong low frequencies, unblurred in either
+    image, towards higher ones, so a blur measures a few per cent weaker than it is
+    (:data:`TAPER_SIGMA_PX`; 0.03-0.04 RMS in ln on the test's scenes, half of each
+    tapered); the exact model, which tapers its renders after their blur, carries the
+    same leakage."""
     w = ndimage.gaussian_filter(np.asarray(mask, float), sigma_px)
     return np.where(valid, w, 0.0)
 
