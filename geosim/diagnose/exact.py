@@ -63,10 +63,7 @@ class ExactSimulations:
         self.spectra = scipy.fft.rfft2(p, s=self.shape)
         self.fy, self.fx = frequency_grid(self.shape, real=True)
         self.log_q = np.log(np.asarray(q_grid, float))
-        self.sharpest = self._tapered(sims[0])
-
-    def _tapered(self, img: np.ndarray) -> np.ndarray:
-        return img if self.taper is None else apply_taper(img, self.taper)
+        self.sharpest = apply_taper(sims[0], taper)
 
     def image(self, q: float, effects: dict[str, dict[str, float]]) -> np.ndarray:
         """The grey simulation at ``q`` (linear in log q between grid members) filtered by
@@ -82,7 +79,8 @@ class ExactSimulations:
                 raise ValueError(f"{name} is not a blur effect")
             spec = spec * eff.transfer(self.fy, self.fx, **params)
         img = scipy.fft.irfft2(spec, s=self.shape)
-        return self._tapered(img[self.pad:self.pad + self.rows, self.pad:self.pad + self.cols])
+        return apply_taper(img[self.pad:self.pad + self.rows, self.pad:self.pad + self.cols],
+                           self.taper)
 
 
 @dataclass

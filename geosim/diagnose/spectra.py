@@ -167,10 +167,13 @@ def cross_spectrum(sim: np.ndarray, real: np.ndarray, *, block_px: int = 32,
                          n_blocks=n, block_px=block_px)
 
 
-def apply_taper(img: np.ndarray, taper: np.ndarray) -> np.ndarray:
+def apply_taper(img: np.ndarray, taper: np.ndarray | None) -> np.ndarray:
     """``img`` (rows, cols) pulled towards its ``taper``-weighted mean where the weight
     (rows, cols, in [0, 1]) is below 1: ``c + taper · (img − c)``. Blocks cut from it keep
-    their content where the weight is 1 and lose it smoothly where it falls to 0."""
+    their content where the weight is 1 and lose it smoothly where it falls to 0. ``img``
+    itself where ``taper`` is None."""
+    if taper is None:
+        return img
     c = float(np.sum(img * taper) / max(float(np.sum(taper)), 1e-12))
     return c + taper * (img - c)
 

@@ -65,7 +65,7 @@ class SpectralSetup:
     def tapered(self, img: np.ndarray) -> np.ndarray:
         """A grey image (rows, cols) as the fits see it: with the changed regions tapered
         out as they were from the simulations (unchanged without a taper)."""
-        return img if self.taper is None else apply_taper(img, self.taper)
+        return apply_taper(img, self.taper)
 
 
 def adopt(model: ForwardModel, sel: BlurSelection) -> ForwardModel:
@@ -156,7 +156,7 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
                              "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
                              "larger common extent")
     keep = jpeg.measured_at if jpeg is not None else None
-    fit_sims = sims_grey if taper is None else [apply_taper(s, taper) for s in sims_grey]
+    fit_sims = [apply_taper(s, taper) for s in sims_grey]
 
     def spectral_data(blocks: list[tuple[int, int]]) -> SpectralData:
         return build_spectral_data(fit_sims, q_grid, real_g, origins=blocks,
