@@ -270,6 +270,10 @@ class ExposureSeam(Effect):
         return img * np.where(side, factor, 1.0)
 
 
+#: side of a JPEG minimum coded unit with 4:2:0 chroma subsampling, px
+MCU_PX = 16
+
+
 class Compression(Effect):
     name = "compression"
     kind = "compression"
@@ -279,9 +283,12 @@ class Compression(Effect):
                    "which removes fine detail inside blocks and leaves steps at block edges.")
 
     def apply(self, image, *, rng=None, quality, block_offset_px=(0, 0)):
+        """JPEG (4:2:0) round trip whose 16 px minimum coded units start at rows and
+        columns ≡ ``block_offset_px`` (mod 16); the 8×8 luma blocks at the same phase mod 8.
+        The phase mod 16 places the chroma's 16 × 16 blocks (subsampled 8 × 8)."""
         img = np.asarray(image, dtype=float)
-        orow, ocol = (int(block_offset_px[0]) % 8, int(block_offset_px[1]) % 8)
-        pr, pc = (8 - orow) % 8, (8 - ocol) % 8
+        orow, ocol = (int(block_offset_px[0]) % MCU_PX, int(block_offset_px[1]) % MCU_PX)
+        pr, pc = (MCU_PX - orow) % MCU_PX, (MCU_PX - ocol) % MCU_PX
         padded = np.pad(img, ((0, 0), (pr, 0), (pc, 0)), mode="edge")
         out = radiometry.jpeg_roundtrip(padded, quality=int(round(quality)))
         return out[:, pr:, pc:]

@@ -36,8 +36,19 @@ def affine_residual(model_g: np.ndarray, real_g: np.ndarray, mask: np.ndarray) -
 
 
 def fit_scene_radiometry(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray) -> ForwardModel:
-    """Exposure seam, then haze / colour response, on the blurred model."""
+    """Exposure seam, then haze / colour response, on the blurred model as delivered.
+
+    Where a JPEG re-encoding was found, the blurred model is re-encoded at its fitted
+    quality before the regression: JPEG keeps luma but coarsens chroma (4:2:0 subsampling,
+    coarse chroma quantisation), so a per-band regression of the scene on an unencoded
+    model reads the lost colour contrast as band gains below 1 with positive offsets,
+    i.e. as haze (round 24: three false hazes beside JPEG alone in development, c153,
+    c644, c752). Fitting T·JPEG(m) + P rather than JPEG(T·m + P) is the linear part of
+    the forward model's order (radiometry, then compression).
+    """
     m_blur = model.without(seam=None).blurred(inp.simulate)
+    if model.compression is not None:
+        m_blur = model.compression.apply(m_blur)
 
     # gains/offsets from large-scale brightness (σ = 2 px low-pass): a model that carries
     # aliasing or noise the scene does not share would otherwise bias the slope low
