@@ -23,6 +23,34 @@ def textured_rgb(rows: int, cols: int, *, seed: int = 0) -> np.ndarray:
     return np.stack([grey * 0.9, grey, grey * 0.7]).astype(np.uint8)
 
 
+def pillow_jpeg(img: np.ndarray, quality: int, *, subsampling: int = -1) -> np.ndarray:
+    """Pillow (libjpeg) JPEG round trip of a (3, rows, cols) image, 0–255, as float.
+    ``subsampling``: -1 Pillow's default (4:2:0), 0 for 4:4:4."""
+    import io
+
+    from PIL import Image
+
+    hwc = np.moveaxis(np.clip(np.rint(img), 0, 255).astype(np.uint8), 0, -1)
+    buf = io.BytesIO()
+    Image.fromarray(hwc, "RGB").save(buf, format="JPEG", quality=int(quality),
+                                     subsampling=subsampling)
+    buf.seek(0)
+    return np.moveaxis(np.asarray(Image.open(buf).convert("RGB"), float), -1, 0)
+
+
+def area_averaged_rgb(path: Path, *, start_px: int, size_px: int, side_px: int
+                      ) -> np.ndarray:
+    """The first three bands of a square window of the raster at ``path`` (rows and cols
+    from ``start_px``, ``size_px`` wide), area-averaged to ``side_px``: float, bands first."""
+    import cv2
+
+    window = ((start_px, start_px + size_px), (start_px, start_px + size_px))
+    with rasterio.open(path) as ds:
+        a = ds.read(window=window)[:3].astype(np.float32)
+    return np.stack([cv2.resize(b, (side_px, side_px), interpolation=cv2.INTER_AREA)
+                     for b in a]).astype(float)
+
+
 def write_raster(path: Path, array: np.ndarray, *, crs: str | None = "EPSG:28356",
                  transform: Affine | None = None, nodata: float | None = None) -> Path:
     """Write a plain GeoTIFF with rasterio (independent of geosim's writer)."""

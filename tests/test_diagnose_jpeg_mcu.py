@@ -7,12 +7,9 @@ applied by hand before the encoding.
 
 from __future__ import annotations
 
-import io
-
 import cv2
 import numpy as np
 import pytest
-from PIL import Image
 
 from geosim.diagnose.effects import get_effect
 from geosim.diagnose.model import CompressionFit, ForwardModel, Registration
@@ -20,29 +17,18 @@ from geosim.diagnose.select import MIN_DELTA_BIC
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_jpeg import mcu_grid
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
+from tests.helpers import area_averaged_rgb, pillow_jpeg
 
 SIDE_PX = 128
 #: the scene is cut from a larger encoded image at these (row, col) offsets
 CUTS = [(0, 0), (3, 11), (8, 8), (12, 4), (5, 14)]
 
 
-def _pillow_jpeg(img: np.ndarray, quality: int, subsampling: int = -1) -> np.ndarray:
-    hwc = np.moveaxis(np.clip(np.rint(img), 0, 255).astype(np.uint8), 0, -1)
-    buf = io.BytesIO()
-    Image.fromarray(hwc, "RGB").save(buf, format="JPEG", quality=quality,
-                                     subsampling=subsampling)
-    buf.seek(0)
-    return np.moveaxis(np.asarray(Image.open(buf).convert("RGB"), float), -1, 0)
-
-
 @pytest.fixture(scope="module")
 def pasture(realdata) -> np.ndarray:
     """A real colour scene, 160 px (0.1 m imagery area-averaged 8x), bands first, DN."""
-    rasterio = pytest.importorskip("rasterio")
-    with rasterio.open(realdata / "brazil_pasture_10cm_epsg3395.tif") as ds:
-        a = ds.read(window=((800, 2080), (800, 2080)))[:3].astype(np.float32)
-    return np.stack([cv2.resize(b, (160, 160), interpolation=cv2.INTER_AREA)
-                     for b in a]).astype(float)
+    return area_averaged_rgb(realdata / "brazil_pasture_10cm_epsg3395.tif", start_px=800,
+                             size_px=1280, side_px=160)
 
 
 def _patches(seed: int = 4) -> np.ndarray:
@@ -58,13 +44,13 @@ def _patches(seed: int = 4) -> np.ndarray:
 
 
 @pytest.mark.parametrize("cut", CUTS)
-def test_mcu_phase_of_a_pillow_jpeg(pasture, cut):
+def test_mcu_phase_of_apillow_jpeg(pasture, cut):
     """The phase mod 16 where the encoder's MCUs start, for real and synthetic colour,
     from the 8x8 grid alone (which leaves two candidates per axis)."""
     r, c = cut
     want = ((-r) % 16, (-c) % 16)
     for scene in (pasture, _patches()):
-        real = _pillow_jpeg(scene, 40)[:, r:r + SIDE_PX, c:c + SIDE_PX]
+        real = pillow_jpeg(scene, 40)[:, r:r + SIDE_PX, c:c + SIDE_PX]
         mask = np.ones(real.shape[-2:], bool)
         phase, ratio = mcu_grid(real, mask, (want[0] % 8, want[1] % 8))
         assert phase == want
@@ -75,7 +61,7 @@ def test_mcu_phase_of_a_pillow_jpeg(pasture, cut):
 
 def test_mcu_phase_without_subsampling_has_no_preference(pasture):
     """4:4:4 chroma is coded in 8x8 blocks: both candidates step alike."""
-    real = _pillow_jpeg(pasture, 40, subsampling=0)[:, 3:3 + SIDE_PX, 11:11 + SIDE_PX]
+    real = pillow_jpeg(pasture, 40, subsampling=0)[:, 3:3 + SIDE_PX, 11:11 + SIDE_PX]
     _, ratio = mcu_grid(real, np.ones(real.shape[-2:], bool), (5, 5))
     assert max(ratio) < 1.5
 
@@ -86,7 +72,7 @@ def test_compression_effect_on_the_mcu_grid_reproduces_pillow(pasture):
     little); at the phase 8 px off it mixes the colours of neighbouring MCUs (0.94 DN)."""
     r, c = 5, 14
     full = np.clip(np.rint(pasture), 0, 255)
-    want = _pillow_jpeg(full, 30)[:, r:r + SIDE_PX, c:c + SIDE_PX]
+    want = pillow_jpeg(full, 30)[:, r:r + SIDE_PX, c:c + SIDE_PX]
     cut = full[:, r:r + SIDE_PX, c:c + SIDE_PX]
     phase = ((-r) % 16, (-c) % 16)
     comp = get_effect("compression")
@@ -121,7 +107,7 @@ def test_jpeg_chroma_loss_is_not_haze(pasture, make_scene):
     scene = pasture if make_scene == "pasture" else _patches()
     r, c = 5, 14
     full = np.clip(np.rint(scene), 0, 255)
-    real = _pillow_jpeg(full, 20)[:, r:r + SIDE_PX, c:c + SIDE_PX]
+    real = pillow_jpeg(full, 20)[:, r:r + SIDE_PX, c:c + SIDE_PX]
     model_img = full[:, r:r + SIDE_PX, c:c + SIDE_PX]
     mask = np.ones(real.shape[-2:], bool)
     phase, _ = mcu_grid(real, mask, ((-r) % 8, (-c) % 8))
@@ -142,7 +128,7 @@ def test_haze_under_jpeg_recovered(pasture):
     r, c = 3, 11
     full = np.clip(np.rint(pasture), 0, 255)
     hazy = t_true[:, None, None] * full + p_true[:, None, None]
-    real = _pillow_jpeg(hazy, 30)[:, r:r + SIDE_PX, c:c + SIDE_PX]
+    real = pillow_jpeg(hazy, 30)[:, r:r + SIDE_PX, c:c + SIDE_PX]
     model_img = full[:, r:r + SIDE_PX, c:c + SIDE_PX]
     mask = np.ones(real.shape[-2:], bool)
     phase, _ = mcu_grid(real, mask, ((-r) % 8, (-c) % 8))

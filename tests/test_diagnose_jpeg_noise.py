@@ -9,16 +9,13 @@ as libjpeg scales it.
 
 from __future__ import annotations
 
-import io
-
-import cv2
 import numpy as np
 import pytest
-from PIL import Image
 
 from geosim.diagnose.jpeg_noise import block_dct, jpeg_noise_variance, lattice_steps
 from geosim.diagnose.noise import estimate_noise
 from geosim.diagnose.spectra import block_origins
+from tests.helpers import area_averaged_rgb, pillow_jpeg
 
 LUMA = np.array([0.299, 0.587, 0.114])
 #: ITU-T T.81 Annex K.1, Table K.1 (luminance), row-major
@@ -34,27 +31,16 @@ def _libjpeg_table(quality: int) -> np.ndarray:
     return np.clip((T81_LUMA * scale + 50) // 100, 1, 255)
 
 
-def _jpeg(img: np.ndarray, quality: int) -> np.ndarray:
-    hwc = np.moveaxis(np.clip(np.rint(img), 0, 255).astype(np.uint8), 0, -1)
-    buf = io.BytesIO()
-    Image.fromarray(hwc, "RGB").save(buf, format="JPEG", quality=quality)
-    buf.seek(0)
-    return np.moveaxis(np.asarray(Image.open(buf).convert("RGB"), float), -1, 0)
-
-
 @pytest.fixture(scope="module")
 def smooth(realdata) -> np.ndarray:
-    rasterio = pytest.importorskip("rasterio")
-    with rasterio.open(realdata / "brazil_pasture_10cm_epsg3395.tif") as ds:
-        a = ds.read(window=((1000, 2280), (1000, 2280)))[:3].astype(np.float32)
-    return np.stack([cv2.resize(b, (128, 128), interpolation=cv2.INTER_AREA)
-                     for b in a]).astype(float)
+    return area_averaged_rgb(realdata / "brazil_pasture_10cm_epsg3395.tif", start_px=1000,
+                             size_px=1280, side_px=128)
 
 
 @pytest.mark.parametrize("quality", [30, 50, 75])
 def test_steps_are_the_standard_table(smooth, quality):
     rng = np.random.default_rng(0)
-    real = _jpeg(smooth + rng.normal(0, 2.0, smooth.shape), quality)
+    real = pillow_jpeg(smooth + rng.normal(0, 2.0, smooth.shape), quality)
     steps = lattice_steps(block_dct(np.tensordot(LUMA, real, 1), (0, 0))).reshape(8, 8)
     table = _libjpeg_table(quality)
     # low frequencies (u + v <= 3) hold enough non-zero coefficients to show their lattice
@@ -69,7 +55,7 @@ def test_noise_variance_under_jpeg(smooth, quality, sigma):
     """Estimated luma noise variance within 25 % (+0.3 DN²) of σ²·Σw² + rounding."""
     rng = np.random.default_rng(int(10 * sigma) + quality)
     noisy = np.clip(np.rint(smooth + rng.normal(0, sigma, smooth.shape)), 0, 255)
-    real = _jpeg(noisy, quality)
+    real = pillow_jpeg(noisy, quality)
     fit = jpeg_noise_variance(np.tensordot(LUMA, real, 1), np.tensordot(LUMA, smooth, 1),
                               (0, 0), np.ones(real.shape[-2:], bool))
     true_var = float(np.sum(LUMA**2)) * (sigma**2 + 1.0 / 12.0)
@@ -86,8 +72,8 @@ def test_estimate_noise_under_jpeg_per_band_and_claim(smooth):
     org = block_origins(smooth.shape[-2:], block_px=32)
     for sigma, claimed in ((3.0, True), (0.0, False)):
         noisy = np.clip(np.rint(smooth + rng.normal(0, sigma, smooth.shape)), 0, 255)
-        real = _jpeg(noisy, 40)
-        model_jpeg = _jpeg(smooth, 40)
+        real = pillow_jpeg(noisy, 40)
+        model_jpeg = pillow_jpeg(smooth, 40)
         est = estimate_noise(real, model_jpeg, mask, origins=org, block_px=32, quantized=True,
                              uncompressed=smooth, block_offset_px=(0, 0))
         assert est.claimed is claimed, (sigma, est.white_var_dn2, est.whiteness)
@@ -105,7 +91,7 @@ def test_block_offset_is_respected(smooth):
     rng = np.random.default_rng(2)
     noisy = np.clip(np.rint(smooth + rng.normal(0, 2.0, smooth.shape)), 0, 255)
     pad = np.pad(noisy, ((0, 0), (5, 0), (3, 0)), mode="edge")   # grid at row 5, col 3
-    real = _jpeg(pad, 50)[:, 5:, 3:]
+    real = pillow_jpeg(pad, 50)[:, 5:, 3:]
     # in the cropped image block edges lie at rows 3, 11, ... and cols 5, 13, ...
     grey = np.tensordot(LUMA, real, 1)
     right = lattice_steps(block_dct(grey, (3, 5))).reshape(8, 8)
@@ -127,7 +113,7 @@ def test_small_noise_under_jpeg_measured_but_not_claimed(smooth):
     org = block_origins(smooth.shape[-2:], block_px=32)
     for sigma, claimed in ((1.5, False), (2.5, True)):
         noisy = np.clip(np.rint(smooth + rng.normal(0, sigma, smooth.shape)), 0, 255)
-        est = estimate_noise(_jpeg(noisy, 40), _jpeg(smooth, 40), mask, origins=org,
+        est = estimate_noise(pillow_jpeg(noisy, 40), pillow_jpeg(smooth, 40), mask, origins=org,
                              block_px=32, quantized=True, uncompressed=smooth,
                              block_offset_px=(0, 0))
         assert est.white_var_dn2 > 1.0, (sigma, est.white_var_dn2)
@@ -149,8 +135,8 @@ def test_brightness_dependent_noise_under_jpeg(smooth):
     for gain, read in ((0.5, 2.0), (0.0, 30.0)):
         rng = np.random.default_rng(1)
         noisy = np.rint(scene + rng.normal(0, 1, scene.shape) * np.sqrt(gain * scene + read))
-        real = _jpeg(np.clip(noisy, 0, 255), 50)
-        est = estimate_noise(real, _jpeg(scene, 50), mask, origins=org, block_px=32,
+        real = pillow_jpeg(np.clip(noisy, 0, 255), 50)
+        est = estimate_noise(real, pillow_jpeg(scene, 50), mask, origins=org, block_px=32,
                              quantized=True, uncompressed=scene, block_offset_px=(0, 0))
         assert est.claimed and est.estimator == "jpeg_dct_censored"
         assert est.brightness_dn.size == 3 and np.all(np.diff(est.brightness_dn) > 0)
