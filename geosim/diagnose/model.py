@@ -86,9 +86,11 @@ class Registration:
 
 @dataclass
 class CompressionFit:
-    """JPEG re-encoding found from block-edge steps in the residual."""
+    """JPEG re-encoding found from its quantisation lattice in the scene."""
 
     quality: int
+    #: (row, col), px: where the 16 px minimum coded units start, mod 16 (the 8×8 luma
+    #: blocks at the same phase mod 8; :func:`geosim.diagnose.stage_jpeg.mcu_grid`)
     offset_px: tuple[int, int]
     test: dict[str, float]
 

@@ -42,9 +42,10 @@ def fit_scene_radiometry(inp: Inputs, model: ForwardModel, fit_mask: np.ndarray)
     quality before the regression: JPEG keeps luma but coarsens chroma (4:2:0 subsampling,
     coarse chroma quantisation), so a per-band regression of the scene on an unencoded
     model reads the lost colour contrast as band gains below 1 with positive offsets,
-    i.e. as haze (round 24: three false hazes beside JPEG alone in development, c153,
-    c644, c752). Fitting T·JPEG(m) + P rather than JPEG(T·m + P) is the linear part of
-    the forward model's order (radiometry, then compression).
+    i.e. as haze (round 24: three development scenes with a JPEG and no radiometric
+    effect were given a haze, c153, c644, c752). Fitting T·JPEG(m) + P rather than
+    JPEG(T·m + P) is the linear part of the forward model's order (radiometry, then
+    compression).
     """
     m_blur = model.without(seam=None).blurred(inp.simulate)
     if model.compression is not None:
