@@ -19,8 +19,8 @@ from geosim.diagnose.spectra import block_origins
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_radiometry import band_affine
 
-__all__ = ["blockiness", "boundary_steps", "mcu_grid", "find_compression", "jpeg_linearised",
-           "jpeg_step_scale", "jpeg_quality_for_scale", "MAX_CLAIMED_QUALITY"]
+__all__ = ["blockiness", "boundary_steps", "phase_means", "mcu_grid", "find_compression",
+           "jpeg_linearised", "jpeg_step_scale", "jpeg_quality_for_scale", "MAX_CLAIMED_QUALITY"]
 
 #: JFIF (full-range BT.601) chroma of RGB: rows Cb, Cr (the JPEG's own colour transform)
 JFIF_CHROMA = np.array([[-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
@@ -43,7 +43,7 @@ def blockiness(residual_grey: np.ndarray, mask: np.ndarray, *, period: int = 8
     for axis, line in zip(("row", "col"), boundary_steps(residual_grey, mask), strict=True):
         idx = np.arange(1, line.size + 1)     # boundary index c (between c-1 and c)
         ok = np.isfinite(line)
-        means = np.array([np.mean(line[ok & (idx % period == p)]) for p in range(period)])
+        means = phase_means(line, period)
         p = int(np.nanargmax(means))
         others = line[ok & (idx % period != p)]
         at = line[ok & (idx % period == p)]
@@ -55,6 +55,16 @@ def blockiness(residual_grey: np.ndarray, mask: np.ndarray, *, period: int = 8
         out[f"{axis}_phase"] = p
         out[f"{axis}_excess_dn2"] = float(np.mean(at) - np.mean(others))
     return out
+
+
+def phase_means(line: np.ndarray, period: int) -> np.ndarray:
+    """Mean of the finite values of ``line`` (one per boundary 1, 2, …, as
+    :func:`boundary_steps` gives them) at each boundary phase mod ``period``: (period,),
+    NaN where a phase has none."""
+    idx = np.arange(1, line.size + 1) % period
+    ok = np.isfinite(line)
+    return np.array([float(np.mean(line[ok & (idx == p)])) if np.any(ok & (idx == p))
+                     else np.nan for p in range(period)])
 
 
 def boundary_steps(img: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,10 +114,8 @@ def mcu_grid(real: np.ndarray, mask: np.ndarray, offset_px: tuple[int, int]
     energy = [np.zeros(2), np.zeros(2)]
     for ch in chroma:
         for axis, line in enumerate(boundary_steps(ch, mask)):
-            idx = np.arange(1, line.size + 1) % MCU_PX
-            for k in (0, 1):
-                at = line[(idx == base[axis] + 8 * k) & np.isfinite(line)]
-                energy[axis][k] += float(np.mean(at)) if at.size else 0.0
+            means = phase_means(line, MCU_PX)[[base[axis], base[axis] + 8]]
+            energy[axis] += np.nan_to_num(means, nan=0.0)
     phase = tuple(base[a] + 8 * int(energy[a][1] > energy[a][0]) for a in (0, 1))
     ratio = tuple(float(max(e) / max(min(e), 1e-12)) if min(e) > 0 else 1.0 for e in energy)
     return (phase[0], phase[1]), (ratio[0], ratio[1])
