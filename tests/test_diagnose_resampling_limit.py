@@ -11,12 +11,15 @@ pitch testable, white noise in the scene raises the limit, a larger margin never
 from __future__ import annotations
 
 import functools
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 
 from geosim.diagnose.detection_limits import combine_limits, limits_markdown
+from geosim.diagnose.fit import TransferFit
+from geosim.diagnose.model import CompressionFit, ForwardModel, Registration
 from geosim.diagnose.resampling_limit import (
     KERNELS,
     PITCHES,
@@ -25,8 +28,15 @@ from geosim.diagnose.resampling_limit import (
     predicted_spectral_gain,
     resampling_limit,
 )
+from geosim.diagnose.select import BlurSelection
 from geosim.diagnose.spectra import block_origins, log_power_ratio, spectral_error
-from geosim.diagnose.stage_withdraw import native_nyquist_floor_px, optics_pass_native_nyquist
+from geosim.diagnose.stage_withdraw import (
+    JPEG_NYQUIST_MARGIN,
+    jpeg_native_floor_px,
+    jpeg_resampling_beyond_optics,
+    native_nyquist_floor_px,
+    optics_pass_native_nyquist,
+)
 from geosim.diagnose.truth_compare import _limit_note
 
 
@@ -135,6 +145,11 @@ def test_jpeg_rule_floor():
     make a scene that tests nothing testable."""
     assert native_nyquist_floor_px(3.4) == pytest.approx(1.7)
     assert not optics_pass_native_nyquist(3.4, 1.7) and optics_pass_native_nyquist(3.4, 1.71)
+    # the withdrawal asks for the fitted Q clearly beyond 2 x the fitted pitch: a pitch just
+    # under Q / 2 (whose Nyquist the fitted optics miss by less than the margin) is kept
+    assert JPEG_NYQUIST_MARGIN > 1.0
+    assert jpeg_native_floor_px(3.4) == pytest.approx(1.7 / JPEG_NYQUIST_MARGIN)
+    assert jpeg_native_floor_px(3.4) < 1.6 < native_nyquist_floor_px(3.4)
     clean = _limit(0.0)
     model = _texture(128, 3)
     origins = block_origins(model.shape, block_px=32)
@@ -196,3 +211,37 @@ def test_combined_over_flights():
     assert older["limit"] == 1.3 and older["limit_by_flight"] == [1.3, None]
     # no flight states one: no entry
     assert "resampling" not in combine_limits([{}, {}], need=1, q=2.5)
+
+
+def _resampled_under_jpeg(q: float, pitch_px: float) -> ForwardModel:
+    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
+                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+    return ForwardModel(q=q, blur={"resampling": {"native_pitch_px": pitch_px,
+                                                  "cubic_a": -0.75}},
+                        registration=reg,
+                        compression=CompressionFit(quality=40, offset_px=(0, 0), test={}))
+
+
+@pytest.mark.parametrize(("q", "pitch_px", "withdrawn"), [
+    (2.82, 1.35, False),   # Q / (2 pitch) 1.04: within the fitted values' margin, kept
+    (3.29, 1.49, False),   # 1.10
+    (3.38, 1.30, True),    # 1.30: the optics clearly short of the native Nyquist
+    (4.08, 1.20, True),    # 1.70
+])
+def test_jpeg_resampling_withdrawn_only_clearly_beyond_the_optics(q, pitch_px, withdrawn):
+    """The rule on a model with resampling alone (Q then goes back to the null fit's)."""
+    null = TransferFit(effects={}, sigmas={}, q=q * 1.1, gain=1.0, chi2=1.0, n_params=2,
+                       n_eff=10.0)
+    sel = BlurSelection(null=null, final=null)
+    model = _resampled_under_jpeg(q, pitch_px)
+    inp = SimpleNamespace(q_base=q)   # the refit without it needs only the baseline Q
+    got, why = jpeg_resampling_beyond_optics(inp, model, sel, None)  # type: ignore[arg-type]
+    assert ("resampling" not in got.blur) == withdrawn
+    assert bool(why) == withdrawn
+    if withdrawn:
+        assert got.q == pytest.approx(q * 1.1) and "native pitch" in why[0]["reason"]
+    else:
+        assert got is model
+    # without JPEG the claim always stands
+    plain = model.without(compression=None)
+    assert jpeg_resampling_beyond_optics(inp, plain, sel, None)[0] is plain  # type: ignore[arg-type]

@@ -122,7 +122,7 @@ class ResamplingLimit:
         on all blocks (too few for halves).
     rule_floor_px
         The native pitch at or below which the diagnosis withdraws any resampling by rule
-        (under JPEG, Q / 2: :func:`geosim.diagnose.stage_withdraw.jpeg_resampling_beyond_optics`);
+        (under JPEG, Q / 2.3: :func:`geosim.diagnose.stage_withdraw.jpeg_resampling_beyond_optics`);
         ``limit`` is at least this. None: no such rule applies.
     """
 

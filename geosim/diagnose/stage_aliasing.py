@@ -25,7 +25,7 @@ from geosim.diagnose.spectra import block_origins, spectral_error
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs, greys
 from geosim.diagnose.stage_noise import realisations
-from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, native_nyquist_floor_px
+from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, jpeg_native_floor_px
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
 __all__ = ["aliasing_test", "split_halves", "resampling_detection_limit", "with_resampling",
@@ -450,7 +450,7 @@ def resampling_detection_limit(inp: Inputs, model: ForwardModel, setup: Spectral
     ``ev``'s blocks against its held-out gain, or, with too few blocks for halves, on all
     of them against route 1's. The renders are ``model`` as delivered (noise realisations
     from ``ev.noise_seed`` where noise is claimed) without any resampling it holds, and
-    with each tested one. Under JPEG the limit is at least Q / 2, where
+    with each tested one. Under JPEG the limit is at least Q / (2 · 1.15), where
     :func:`~geosim.diagnose.stage_withdraw.jpeg_resampling_beyond_optics` withdraws any
     resampling."""
     base = model.without(blur={k: v for k, v in model.blur.items() if k != "resampling"})
@@ -466,4 +466,4 @@ def resampling_detection_limit(inp: Inputs, model: ForwardModel, setup: Spectral
     return resampling_limit(render, inp.grey, sets, block_px=setup.block_px,
                             q=float(model.q), need=need,
                             rule_floor_px=None if model.compression is None
-                            else native_nyquist_floor_px(float(model.q)))
+                            else jpeg_native_floor_px(float(model.q)))
