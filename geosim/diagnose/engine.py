@@ -16,8 +16,10 @@ cross-validation folds, forward blur selection) →
 :func:`~geosim.diagnose.stage_noise.estimate_scene_noise` →
 :func:`~geosim.diagnose.stage_jpeg_refit.delivered_q` (Q under JPEG on the delivered spectrum) →
 :func:`~geosim.diagnose.stage_register.confirm_shift` (the shift against the refined model) →
-:mod:`~geosim.diagnose.stage_aliasing` and :mod:`~geosim.diagnose.stage_withdraw` (checks on
-the delivered spectrum; the refined simulation may not fit worse than the baseline) →
+:mod:`~geosim.diagnose.stage_aliasing`, :mod:`~geosim.diagnose.stage_resampling_coherent`
+(under noise, a resampling by its aliasing in the pixels) and
+:mod:`~geosim.diagnose.stage_withdraw` (checks on the delivered spectrum; the refined
+simulation may not fit worse than the baseline) →
 :func:`~geosim.diagnose.stage_claims.claim_effects` →
 :func:`~geosim.diagnose.stage_change.model_moved_objects` (a claimed scene change modelled
 as moved objects, :mod:`~geosim.diagnose.stage_objects`) and
@@ -57,6 +59,7 @@ from geosim.diagnose.stage_jpeg_refit import (
 from geosim.diagnose.stage_noise import estimate_scene_noise, noise_helps
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
 from geosim.diagnose.stage_register import confirm_shift, coregister, unapplied
+from geosim.diagnose.stage_resampling_coherent import coherent_resampling
 from geosim.diagnose.stage_summary import PHYSICAL_Q, make_summary, mismatch_maps, plot_data
 from geosim.diagnose.stage_withdraw import (
     blur_at_q_floor,
@@ -175,6 +178,8 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         model, withdrawn_again = noise_helps(
             inp, estimate_scene_noise(inp, model, setup, fit_mask), ev)
         withdrawn_noise = withdrawn_noise + withdrawn_again
+    # under noise, a resampling by its aliasing in the pixels, where the spectrum cannot
+    model = coherent_resampling(inp, model, sel, setup, ev, window.candidates)
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     model, withdrawn_alias = jpeg_resampling_beyond_optics(inp, model, sel, setup)
     found = model

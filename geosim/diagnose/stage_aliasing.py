@@ -29,6 +29,7 @@ from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, jpeg_native_floor_px
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
 __all__ = ["aliasing_test", "split_halves", "resampling_detection_limit", "with_resampling",
+           "pinned_in_scan", "PITCH_SCAN", "PITCH_STEP",
            "ALIASING_SPECTRAL_GAIN", "ALIASING_SPECTRAL_GAIN_SPLIT"]
 
 #: resampling not chosen by the transfer fit is still claimed when its aliasing, which the
@@ -176,7 +177,7 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
     chosen = best(se_h.sum(axis=1), halves[0] + halves[1])
     fit_p = (fitted[grid[j]][1] if chosen is fitted[grid[j]][0]
              else _moved_fit(setup, fitted[grid[j]][1], chosen))
-    if _pinned(chosen.blur[name]["native_pitch_px"]):
+    if pinned_in_scan(chosen.blur[name]["native_pitch_px"]):
         # pinned at an end of the scan: the pitch stands in for a shape resampling does
         # not have (as a fitted parameter at a bound, never claimed by name; development:
         # 1.15 px where the truth was atmosphere at Q 4)
@@ -213,7 +214,7 @@ def phase_realisations(inp: Inputs, m: ForwardModel, rng_seed: int) -> list[np.n
     return out
 
 
-def _pinned(pitch_px: float) -> bool:
+def pinned_in_scan(pitch_px: float) -> bool:
     """At (within 0.01 px of) an end of :data:`PITCH_SCAN`."""
     return pitch_px <= PITCH_SCAN[0] + 0.01 or pitch_px >= PITCH_SCAN[-1] - 0.01
 
@@ -276,7 +277,7 @@ def _refined_from(setup: SpectralSetup, starts: list[ForwardModel],
         # the search or the scan there stands in for something else (as blur_at_q_floor
         # and route 2's pinned pitch): development c16, c177 (Q 1.64, 0.85) had Q driven
         # to the bottom of the grid, with a false atmosphere held or the noise dropped
-        return q <= Q_FLOOR_REL * float(setup.q_grid[0]) or _pinned(pitch_px)
+        return q <= Q_FLOOR_REL * float(setup.q_grid[0]) or pinned_in_scan(pitch_px)
 
     free = [m for m in starts if not at_bound(m.q, m.blur[name]["native_pitch_px"])]
     if not free:
