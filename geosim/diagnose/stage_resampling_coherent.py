@@ -44,9 +44,9 @@ __all__ = ["coherent_resampling", "CoherentScan", "coherent_scan", "COHERENT_MIN
 
 #: held-out drop of the residual sum of squares a resampling must bring, in units of the
 #: held-out half's residual variance per pixel (a Δχ² with the residual as the noise), on
-#: each half. Set on the development half (round 25, the 124 scenes with noise claimed, no
+#: each half. Set on the development half (round 25, the 125 scenes with noise claimed, no
 #: JPEG and no resampling found by round 24's code): the 103 without a resampling reached
-#: at most 1.3 on their weaker half; of the 21 with one, c539 65, c344 78, c316 12 (the
+#: at most 1.3 on their weaker half; of the 22 with one, c539 65, c344 78, c316 12 (the
 #: others below 9, most negative: the transfer's Q, the phase grid or other blurs off)
 COHERENT_MIN_DCHI2 = 10.0
 #: native-grid phases scanned per axis (steps of pitch / PHASE_STEPS)
