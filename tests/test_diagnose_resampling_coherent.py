@@ -22,11 +22,11 @@ def test_heldout_dchi2_chooses_on_one_half_and_scores_the_other():
     left = np.zeros((2, 4), bool)
     left[:, :2] = True
     right = ~left   # 4 pixels each
-    base = [(1.0, "q1", [40.0, 80.0]), (1.1, "q2", [36.0, 88.0])]
+    base = [[40.0, 80.0], [36.0, 88.0]]   # two Q factors
     resampled = [("r1", [30.0, 60.0]), ("r2", [20.0, 76.0])]
     scan = CoherentScan(halves=[left, right], base=base, resampled=resampled)  # type: ignore[arg-type]
-    # chosen on the left: base q2 (36), resampled r2 (20); scored on the right: 88 → 76
-    # in units of 88 / 4 per pixel; chosen on the right: q1 (80), r1 (60); on the left
+    # chosen on the left: base Q 2 (36), resampled r2 (20); scored on the right: 88 → 76
+    # in units of 88 / 4 per pixel; chosen on the right: Q 1 (80), r1 (60); on the left
     # 40 → 30 in units of 40 / 4
     assert scan.heldout_dchi2() == pytest.approx([(88 - 76) / 22, (40 - 30) / 10])
     assert scan.best() == "r1"   # lowest over both halves (90 against 96)

@@ -67,14 +67,15 @@ class CoherentScan:
     halves
         Bool masks (rows, cols): the evaluation pixels left and right of the middle column.
     base
-        (Q factor, model, [RSS on each half, DN²]) of the model without resampling.
+        [RSS on each half, DN²] of the model without resampling, at each Q of
+        :data:`Q_SCAN`.
     resampled
         (model with resampling and its transfer-refitted Q, [RSS on each half, DN²]) for
         every scanned pitch, kernel and phase.
     """
 
     halves: list[np.ndarray]
-    base: list[tuple[float, ForwardModel, list[float]]]
+    base: list[list[float]]
     resampled: list[tuple[ForwardModel, list[float]]]
 
     def heldout_dchi2(self) -> list[float]:
@@ -83,7 +84,7 @@ class CoherentScan:
         out = []
         for k in (0, 1):
             o = 1 - k
-            b0 = min(self.base, key=lambda x: x[2][k])[2][o]
+            b0 = min(self.base, key=lambda x: x[k])[o]
             b1 = min(self.resampled, key=lambda x: x[1][k])[1][o]
             var = b0 / max(int(self.halves[o].sum()), 1)
             out.append((b0 - b1) / max(var, 1e-12))
@@ -109,7 +110,7 @@ def coherent_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
         r = inp.grey - grey(m.deterministic(inp.simulate))
         return [float(np.sum(r[h] ** 2)) for h in halves]
 
-    base = [(f, m, rss(m)) for f in Q_SCAN for m in [model.without(q=model.q * f)]]
+    base = [rss(model.without(q=model.q * f)) for f in Q_SCAN]
     resampled = []
     for pitch in PITCH_SCAN:
         for a in (OPENCV_A, KEYS_A):

@@ -67,7 +67,7 @@ def blur_at_q_floor(inp: Inputs, model: ForwardModel, sel: BlurSelection,
          "blur takes the optics' place, neither is measured"} for n in at_floor]
 
 
-def optics_pass_native_nyquist(q: float, native_pitch_px: float) -> bool:
+def optics_pass_native_nyquist(q: float, native_pitch_px: float, margin: float = 1.0) -> bool:
     """Whether the optics pass the native grid's Nyquist frequency.
 
     The circular aperture cuts off at 1/Q cycles per product pixel
@@ -75,8 +75,10 @@ def optics_pass_native_nyquist(q: float, native_pitch_px: float) -> bool:
     pixels has its Nyquist at 1 / (2 · pitch). Only below Q = 2 · pitch does scene
     content reach the band where the native sampling aliases and the cubic interpolation
     rolls off, i.e. where resampling changes the coherent transfer in a way Q cannot.
+    ``margin`` > 1 asks for Q clearly short of that (``q`` ≥ margin · 2 · pitch) before
+    saying no, where Q and the pitch are both fitted (:data:`JPEG_NYQUIST_MARGIN`).
     """
-    return native_pitch_px > native_nyquist_floor_px(q)
+    return native_pitch_px > native_nyquist_floor_px(q) / margin
 
 
 def native_nyquist_floor_px(q: float) -> float:
@@ -110,7 +112,7 @@ def jpeg_resampling_beyond_optics(inp: Inputs, model: ForwardModel, sel: BlurSel
     resampling's own and the claim stands."""
     params = model.blur.get("resampling")
     if model.compression is None or params is None or \
-            params["native_pitch_px"] > jpeg_native_floor_px(model.q):
+            optics_pass_native_nyquist(model.q, params["native_pitch_px"], JPEG_NYQUIST_MARGIN):
         return model, []
     q, eff = refit_without(sel, setup, [n for n in model.blur if n != "resampling"],
                            inp.q_base)
