@@ -17,7 +17,9 @@ cross-validation folds, forward blur selection) →
 :func:`~geosim.diagnose.stage_jpeg_refit.delivered_q` (Q under JPEG on the delivered spectrum) →
 :func:`~geosim.diagnose.stage_register.confirm_shift` (the shift against the refined model) →
 :mod:`~geosim.diagnose.stage_aliasing`, :mod:`~geosim.diagnose.stage_resampling_coherent`
-(under noise, a resampling by its aliasing in the pixels) and
+(under noise, a resampling by its aliasing in the pixels),
+:mod:`~geosim.diagnose.stage_isotropic_pixels` (beside a resampling, an isotropic blur by
+its trace in the pixels) and
 :mod:`~geosim.diagnose.stage_withdraw` (checks on the delivered spectrum; the refined
 simulation may not fit worse than the baseline) →
 :func:`~geosim.diagnose.stage_claims.claim_effects` →
@@ -50,6 +52,7 @@ from geosim.diagnose.stage_change import (
 from geosim.diagnose.stage_claims import claim_effects
 from geosim.diagnose.stage_inputs import grey, make_inputs
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
+from geosim.diagnose.stage_isotropic_pixels import pixel_isotropic
 from geosim.diagnose.stage_jpeg_refit import (
     delivered_q,
     dithered_refit,
@@ -180,6 +183,8 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         withdrawn_noise = withdrawn_noise + withdrawn_again
     # under noise, a resampling by its aliasing in the pixels, where the spectrum cannot
     model = coherent_resampling(inp, model, sel, setup, ev, window.candidates)
+    # beside a resampling, an isotropic roll-off by its trace in the pixels
+    model = pixel_isotropic(inp, model, sel, setup, ev, window.candidates)
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     model, withdrawn_alias = jpeg_resampling_beyond_optics(inp, model, sel, setup)
     found = model

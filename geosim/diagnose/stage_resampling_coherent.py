@@ -40,7 +40,7 @@ from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
 __all__ = ["coherent_resampling", "CoherentScan", "coherent_scan", "COHERENT_MIN_DCHI2",
-           "PHASE_STEPS", "Q_SCAN"]
+           "PHASE_STEPS", "Q_SCAN", "eval_halves", "rss_on_halves", "heldout_drop"]
 
 #: held-out drop of the residual sum of squares a resampling must bring, in units of the
 #: held-out half's residual variance per pixel (a Δχ² with the residual as the noise), on
@@ -81,34 +81,56 @@ class CoherentScan:
     def heldout_dchi2(self) -> list[float]:
         """For each half k: the drop of the other half's RSS, models chosen on half k, in
         units of the other half's residual variance per pixel (without resampling)."""
-        out = []
-        for k in (0, 1):
-            o = 1 - k
-            b0 = min(self.base, key=lambda x: x[k])[o]
-            b1 = min(self.resampled, key=lambda x: x[1][k])[1][o]
-            var = b0 / max(int(self.halves[o].sum()), 1)
-            out.append((b0 - b1) / max(var, 1e-12))
-        return out
+        return heldout_drop(self.halves, self.base, [r for _, r in self.resampled])
 
     def best(self) -> ForwardModel:
         """The resampled model of lowest RSS over both halves."""
         return min(self.resampled, key=lambda x: sum(x[1]))[0]
 
 
-def coherent_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
-                  ev: EvalContext) -> CoherentScan | None:
-    """The scan of :func:`coherent_resampling`; None when a half holds no pixels."""
+def heldout_drop(halves: list[np.ndarray], base: list[list[float]],
+                 alternative: list[list[float]]) -> list[float]:
+    """For each half k: the drop of the other half's residual sum of squares when the
+    alternative models (each [RSS on half 0, RSS on half 1], DN²) replace the base models,
+    both chosen (lowest RSS) on half k, in units of the other half's residual variance per
+    pixel under the base model."""
+    out = []
+    for k in (0, 1):
+        o = 1 - k
+        b0 = min(base, key=lambda x: x[k])[o]
+        b1 = min(alternative, key=lambda x: x[k])[o]
+        var = b0 / max(int(halves[o].sum()), 1)
+        out.append((b0 - b1) / max(var, 1e-12))
+    return out
+
+
+def eval_halves(ev: EvalContext) -> list[np.ndarray] | None:
+    """The evaluation pixels (``ev.mask`` less :data:`EDGE_PX` at each edge) left and
+    right of the middle column; None when a half holds none."""
     mask = ev.mask.copy()
     mask[:EDGE_PX] = mask[-EDGE_PX:] = False
     mask[:, :EDGE_PX] = mask[:, -EDGE_PX:] = False
     cols = np.arange(mask.shape[1])[np.newaxis, :]
     halves = [mask & (cols < mask.shape[1] // 2), mask & (cols >= mask.shape[1] // 2)]
-    if min(int(h.sum()) for h in halves) == 0:
+    return None if min(int(h.sum()) for h in halves) == 0 else halves
+
+
+def rss_on_halves(inp: Inputs, halves: list[np.ndarray], m: ForwardModel) -> list[float]:
+    """[RSS on each half, DN²] of the real scene (grey) against ``m``'s expected image
+    (:meth:`~geosim.diagnose.model.ForwardModel.deterministic`: no noise realisation)."""
+    r = inp.grey - grey(m.deterministic(inp.simulate))
+    return [float(np.sum(r[h] ** 2)) for h in halves]
+
+
+def coherent_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
+                  ev: EvalContext) -> CoherentScan | None:
+    """The scan of :func:`coherent_resampling`; None when a half holds no pixels."""
+    halves = eval_halves(ev)
+    if halves is None:
         return None
 
     def rss(m: ForwardModel) -> list[float]:
-        r = inp.grey - grey(m.deterministic(inp.simulate))
-        return [float(np.sum(r[h] ** 2)) for h in halves]
+        return rss_on_halves(inp, halves, m)
 
     base = [rss(model.without(q=model.q * f)) for f in Q_SCAN]
     resampled = []

@@ -1,0 +1,195 @@
+"""An isotropic blur beside a resampling, by its trace in the pixels (:func:`pixel_isotropic`).
+
+Where a resampling is claimed, its aliasing fills the band above the native Nyquist with
+power the transfer fit reads as incoherence, and an isotropic roll-off (a detector box, an
+atmosphere) that acts below that band differs from a wider optical PSF by little the
+transfer can weigh: on the development half (round 25's code) 6 of the 17 detectors and
+atmospheres beside a claimed resampling (no JPEG) were ideally detectable (observer
+Δχ² 3e3-4e4) and went into Q instead (Q fitted 22-70 % high).
+
+In the pixels the resampled product is determined (the native grid's phase chosen on
+the scene, as :mod:`~geosim.diagnose.stage_resampling_coherent` does), so the model with
+the missing roll-off fits the scene pixel by pixel where a wider PSF cannot. Each member
+of the isotropic family is scanned over its parameter (Q refitted on the transfer with
+it and the other blurs held, then scanned by factors in the pixels); the member and
+parameter are chosen on one half of the evaluation pixels (left / right of the middle
+column) and must lower the other half's residual by at least
+:data:`ISO_PIXEL_MIN_DCHI2` of that half's residual variance per pixel, against the model
+without it (its Q scanned on the same half), both ways round. The member claimed is the
+one of lowest residual over both halves; the other is listed as an alternative where it
+passes the same test.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from geosim.diagnose.context import EvalContext
+from geosim.diagnose.fit import fit_transfer
+from geosim.diagnose.model import ForwardModel
+from geosim.diagnose.select import (
+    BLUR_FAMILY,
+    EFFECT_SIZE,
+    AcceptedEffect,
+    Alternative,
+    BlurSelection,
+    delta_bic,
+)
+from geosim.diagnose.stage_blur import SpectralSetup
+from geosim.diagnose.stage_inputs import Inputs
+from geosim.diagnose.stage_resampling_coherent import (
+    PHASE_STEPS,
+    eval_halves,
+    heldout_drop,
+    rss_on_halves,
+)
+from geosim.diagnose.stage_withdraw import Q_FLOOR_REL
+
+__all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "ISO_PIXEL_MIN_DCHI2",
+           "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS"]
+
+#: held-out drop of the residual sum of squares the isotropic blur must bring, in units of
+#: the held-out half's residual variance per pixel, on each half (set on the development
+#: half, round 26; see the module docstring)
+ISO_PIXEL_MIN_DCHI2 = 100.0
+#: (parameter, scanned values) of each member of the isotropic family; a value at an end
+#: of its scan is not claimed (it stands in for a shape beyond it)
+MEMBER_SCAN: dict[str, tuple[str, np.ndarray]] = {
+    "detector_integration": ("pitch_px", np.round(np.arange(0.6, 2.0 + 1e-9, 0.1), 2)),
+    "atmospheric_blur": ("f0_cyc_per_px", np.round(np.arange(0.15, 0.65 + 1e-9, 0.025), 3)),
+}
+#: factors on the transfer-refitted Q scanned in the pixels for each scanned member
+Q_FACTORS = (0.9, 0.95, 1.0, 1.05, 1.1)
+#: factors on the model's Q scanned in the pixels for the model without the isotropic blur
+#: (adding a roll-off lowers Q; the model without it is given the same room below)
+BASE_Q_FACTORS = (0.85, 0.9, 0.95, 1.0, 1.05, 1.1)
+
+
+@dataclass
+class IsotropicScan:
+    """Residual sums of squares of the scanned models on the two halves of the pixels.
+
+    Attributes
+    ----------
+    halves
+        Bool masks (rows, cols): the evaluation pixels left and right of the middle column.
+    base
+        The model without an isotropic blur (its native phase chosen) and its [RSS on each
+        half, DN²] at each of :data:`BASE_Q_FACTORS`.
+    scanned
+        (member, parameter value, model with it at a scanned Q, [RSS on each half, DN²])
+        for every member, value and Q factor (those that leave Q at or below
+        ``Q_FLOOR_REL`` × the bottom of the Q grid left out: there
+        :func:`~geosim.diagnose.stage_withdraw.blur_at_q_floor` withdraws the blur).
+    """
+
+    halves: list[np.ndarray]
+    base: list[tuple[ForwardModel, list[float]]]
+    scanned: list[tuple[str, float, ForwardModel, list[float]]]
+
+    def heldout_dchi2(self, member: str | None = None) -> list[float]:
+        """Held-out drop on each half (:func:`heldout_drop`) with the models chosen among
+        every member's (or only ``member``'s)."""
+        alt = [r for n, _, _, r in self.scanned if member is None or n == member]
+        return heldout_drop(self.halves, [r for _, r in self.base], alt)
+
+    def best(self, member: str | None = None) -> tuple[str, float, ForwardModel]:
+        """(member, value, model) of lowest RSS over both halves."""
+        n, v, m, _ = min((s for s in self.scanned if member is None or s[0] == member),
+                         key=lambda s: sum(s[3]))
+        return n, v, m
+
+
+def _pinned(member: str, value: float) -> bool:
+    grid = MEMBER_SCAN[member][1]
+    return bool(np.isclose(value, grid[0]) or np.isclose(value, grid[-1]))
+
+
+def _sized(member: str, value: float) -> bool:
+    """Clearly away from the member's null (:data:`~geosim.diagnose.select.EFFECT_SIZE`)."""
+    _, op, limit = EFFECT_SIZE[member]
+    return value >= limit if op == ">=" else value <= limit
+
+
+def isotropic_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup, ev: EvalContext,
+                   members: list[str]) -> IsotropicScan | None:
+    """The scan of :func:`pixel_isotropic`; None when a half holds no pixels."""
+    halves = eval_halves(ev)
+    if halves is None:
+        return None
+
+    def rss(m: ForwardModel) -> list[float]:
+        return rss_on_halves(inp, halves, m)
+
+    # the native grid's phase, on all the evaluation pixels: the models compared share it
+    pitch = float(model.blur["resampling"]["native_pitch_px"])
+    steps = np.arange(PHASE_STEPS) * pitch / PHASE_STEPS
+    phases = [(float(a), float(b)) for a in steps for b in steps]
+    model = model.without(native_phase_px=min(
+        phases, key=lambda p: sum(rss(model.without(native_phase_px=p)))))
+    base = []
+    for f in BASE_Q_FACTORS:
+        m = model.without(q=model.q * f)
+        base.append((m, rss(m)))
+    q_floor = Q_FLOOR_REL * float(setup.q_grid[0])
+    scanned = []
+    for name in members:
+        key, grid = MEMBER_SCAN[name]
+        for v in grid:
+            held = {**model.blur, name: {key: float(v)}}
+            fit = fit_transfer(setup.full, [], q_starts=(model.q,), fixed=held)
+            m1 = model.without(q=fit.q, blur=dict(fit.effects))
+            for f in Q_FACTORS:
+                if fit.q * f <= q_floor:
+                    continue   # Q at its bound: the roll-off would take the optics' place
+                m = m1.without(q=fit.q * f)
+                scanned.append((name, float(v), m, rss(m)))
+    return IsotropicScan(halves=halves, base=base, scanned=scanned) if scanned else None
+
+
+def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
+                    setup: SpectralSetup, ev: EvalContext,
+                    candidates: tuple[str, ...]) -> ForwardModel:
+    """An isotropic blur claimed beside a resampling by its trace in the pixels.
+
+    Tested only where the model holds a resampling, no member of the isotropic family
+    and no JPEG (whose quantisation is not independent of the image). The claim's step
+    records ``heldout_gain`` as the weaker half's held-out drop of the residual sum of
+    squares (fraction); its fit is the transfer fit with the chosen blur held (Q refitted),
+    its uncertainty the scan's step."""
+    members = [n for n in MEMBER_SCAN if n in candidates]
+    if (not members or "resampling" not in model.blur or model.compression is not None
+            or any(BLUR_FAMILY.get(n) == "isotropic" for n in model.blur)):
+        return model
+    scan = isotropic_scan(inp, model, setup, ev, members)
+    if scan is None or min(scan.heldout_dchi2()) < ISO_PIXEL_MIN_DCHI2:
+        return model
+    name, value, chosen = scan.best()
+    if _pinned(name, value) or not _sized(name, value):
+        return model
+    key, grid = MEMBER_SCAN[name]
+    n_half = [int(h.sum()) for h in scan.halves]
+    alternatives = []
+    for other in members:
+        if other == name:
+            continue
+        d = scan.heldout_dchi2(other)
+        if min(d) >= ISO_PIXEL_MIN_DCHI2:
+            _, v, _ = scan.best(other)
+            alternatives.append(Alternative(other, min(x / n for x, n in zip(d, n_half,
+                                                                            strict=True)),
+                                            {MEMBER_SCAN[other][0]: v}))
+    # the transfer's χ² at the chosen Q (for the ΔBIC reported; the claim rests on the pixels)
+    fit = fit_transfer(setup.full, [], fix_q=chosen.q, fixed=dict(chosen.blur))
+    prev = sel.steps[-1].fit if sel.steps else sel.null
+    step_fit = replace(fit, sigmas={**prev.sigmas, name: {key: float(grid[1] - grid[0])}},
+                       n_params=prev.n_params + 1)
+    dchi2 = scan.heldout_dchi2()
+    gain = min(d / n for d, n in zip(dchi2, n_half, strict=True))
+    sel.steps.append(AcceptedEffect(name, delta_bic(prev, step_fit, 2 * setup.full.t_real.size),
+                                    float(gain), alternatives, step_fit))
+    sel.cv_gain[name] = float(gain)
+    sel.final = step_fit
+    return chosen

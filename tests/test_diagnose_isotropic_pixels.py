@@ -1,0 +1,76 @@
+"""An isotropic blur beside a resampling, found by its trace in the pixels.
+
+The scenes come from the independent generator (``benchmarks/diagnose_generator.py``: a
+detector box on the 0.05 m grid, the native grid rendered there and area-averaged, OpenCV's
+bicubic back onto the product grid), run blind through the whole diagnosis; the held-out
+measure and the naming are checked on hand-made residual sums.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import geosim.diagnose.stage_isotropic_pixels as iso
+from geosim.diagnose.stage_isotropic_pixels import IsotropicScan
+from tests.test_diagnose_independent import _run
+
+RESAMPLED_DETECTOR = {"resampling": {"native_pitch_px": 1.5},
+                      "detector_integration": {"pitch_px": 1.5}}
+
+
+def _halves() -> list[np.ndarray]:
+    left = np.zeros((2, 4), bool)
+    left[:, :2] = True
+    return [left, ~left]   # 4 pixels each
+
+
+def test_heldout_dchi2_per_member_and_naming_by_both_halves():
+    base = [("b1", [40.0, 80.0]), ("b2", [36.0, 88.0])]
+    scanned = [("detector_integration", 1.2, "d12", [30.0, 60.0]),
+               ("detector_integration", 1.4, "d14", [20.0, 76.0]),
+               ("atmospheric_blur", 0.4, "a04", [34.0, 50.0])]
+    scan = IsotropicScan(halves=_halves(), base=base, scanned=scanned)  # type: ignore[arg-type]
+    # every member: chosen on the left, base b2 (36) and d14 (20), scored on the right:
+    # 88 → 76 in units of 88 / 4; chosen on the right, b1 (80) and a04 (50), on the left
+    # 40 → 34 in units of 40 / 4
+    assert scan.heldout_dchi2() == pytest.approx([(88 - 76) / 22, (40 - 34) / 10])
+    # the detector alone: on the right d12 (60) is chosen, on the left 40 → 30
+    assert scan.heldout_dchi2("detector_integration") == pytest.approx(
+        [(88 - 76) / 22, (40 - 30) / 10])
+    # named by the lowest RSS over both halves: a04 (84) against d12 (90) and d14 (96)
+    assert scan.best() == ("atmospheric_blur", 0.4, "a04")
+    assert scan.best("detector_integration") == ("detector_integration", 1.2, "d12")
+
+
+def test_ends_of_the_scan_and_the_effect_size_are_not_claimed():
+    pitches = iso.MEMBER_SCAN["detector_integration"][1]
+    assert iso._pinned("detector_integration", float(pitches[0]))
+    assert iso._pinned("detector_integration", float(pitches[-1]))
+    assert not iso._pinned("detector_integration", 1.3)
+    assert iso._sized("atmospheric_blur", 0.4) and not iso._sized("atmospheric_blur", 0.7)
+    assert iso._sized("detector_integration", 0.6) and not iso._sized("detector_integration",
+                                                                       0.4)
+
+
+def test_detector_beside_a_resampling_found_in_the_pixels():
+    claimed, se_base, se_ref, _ = _run(RESAMPLED_DETECTOR, q=1.6, seed=30, sat_px=128)
+    assert set(claimed) == {"resampling", "detector_integration"}, list(claimed)
+    assert abs(claimed["detector_integration"]["params"]["pitch_px"] - 1.5) <= 0.15
+    assert abs(claimed["resampling"]["params"]["native_pitch_px"] - 1.5) <= 0.1
+    assert se_ref <= 0.5 * se_base, (se_base, se_ref)
+
+
+def test_without_the_pixel_test_that_detector_goes_into_q(monkeypatch):
+    """The same scene with the stage switched off: the transfer alone misses the detector
+    (so the test above is this stage's)."""
+    monkeypatch.setattr(iso, "ISO_PIXEL_MIN_DCHI2", np.inf)
+    claimed, _, _, _ = _run(RESAMPLED_DETECTOR, q=1.6, seed=30, sat_px=128)
+    assert set(claimed) == {"resampling"}, list(claimed)
+
+
+def test_resampling_alone_claims_no_isotropic_blur():
+    truth = {"resampling": {"native_pitch_px": 1.5}}
+    claimed, se_base, se_ref, _ = _run(truth, q=1.6, seed=33, sat_px=128)
+    assert set(claimed) == {"resampling"}, list(claimed)
+    assert se_ref <= se_base
