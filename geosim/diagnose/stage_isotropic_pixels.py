@@ -5,7 +5,7 @@ power the transfer fit reads as incoherence, and an isotropic roll-off (a detect
 atmosphere) that acts below that band differs from a wider optical PSF by little the
 transfer can weigh: on the development half (round 25's code) 6 of the 17 detectors and
 atmospheres beside a claimed resampling (no JPEG) were ideally detectable (observer
-Δχ² 3e3-4e4) and went into Q instead (Q fitted 22-70 % high).
+Δχ² 3e3-4e4) and went into Q instead (Q fitted 21-70 % high).
 
 In the pixels the resampled product is determined (the native grid's phase chosen on
 the scene, as :mod:`~geosim.diagnose.stage_resampling_coherent` does), so the model with
@@ -51,8 +51,13 @@ __all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "ISO_PIXEL_MIN_
            "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS"]
 
 #: held-out drop of the residual sum of squares the isotropic blur must bring, in units of
-#: the held-out half's residual variance per pixel, on each half (set on the development
-#: half, round 26; see the module docstring)
+#: the held-out half's residual variance per pixel, on each half. Set on the development
+#: half (round 26, the 110 scenes of this stage's domain in round 25's rows, weaker half):
+#: of the 93 without an isotropic blur, one passed with a claimable value (c186, 384: a
+#: smear claimed as off-nadir, whose misfit a 1.0 px detector takes up; c196, 444, left Q
+#: at its floor), the next c276 at 90 (c461 189 and c172 92 at the end of the scan); of
+#: the 17 with one: c552 741, c727 653, c154 582, c404 527, c16 190, c24 182 (a detector
+#: named for an atmosphere), c102 140; c762 83 missed, c366's pitch at the end of the scan
 ISO_PIXEL_MIN_DCHI2 = 100.0
 #: (parameter, scanned values) of each member of the isotropic family; a value at an end
 #: of its scan is not claimed (it stands in for a shape beyond it)
