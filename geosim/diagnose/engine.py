@@ -51,8 +51,8 @@ from geosim.diagnose.stage_change import (
 )
 from geosim.diagnose.stage_claims import claim_effects
 from geosim.diagnose.stage_inputs import grey, make_inputs
-from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
 from geosim.diagnose.stage_isotropic_pixels import pixel_isotropic
+from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
 from geosim.diagnose.stage_jpeg_refit import (
     delivered_q,
     dithered_refit,

@@ -17,7 +17,8 @@ column) and must lower the other half's residual by at least
 :data:`ISO_PIXEL_MIN_DCHI2` of that half's residual variance per pixel, against the model
 without it (its Q scanned on the same half), both ways round. The member claimed is the
 one of lowest residual over both halves; the other is listed as an alternative where it
-passes the same test.
+passes the same test. The model with it must fit no worse than the baseline (as
+:func:`~geosim.diagnose.stage_withdraw.never_worse` asks of the refined simulation).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from geosim.diagnose.stage_resampling_coherent import (
     heldout_drop,
     rss_on_halves,
 )
-from geosim.diagnose.stage_withdraw import Q_FLOOR_REL
+from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, fits_no_worse
 
 __all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "ISO_PIXEL_MIN_DCHI2",
            "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS"]
@@ -173,6 +174,11 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         return model
     name, value, chosen = scan.best()
     if _pinned(name, value) or not _sized(name, value):
+        return model
+    if not fits_no_worse(inp, chosen, ev):
+        # :func:`~geosim.diagnose.stage_withdraw.never_worse` would withdraw it and refit
+        # Q on the transfer, losing the Q the resampling's spectrum had put right
+        # (development c196: spectral error 0.027 → 0.103)
         return model
     key, grid = MEMBER_SCAN[name]
     n_half = [int(h.sum()) for h in scan.halves]
