@@ -109,6 +109,7 @@ class IsotropicScan:
 
 
 def _pinned(member: str, value: float) -> bool:
+    """At an end of the member's scan (:data:`MEMBER_SCAN`)."""
     grid = MEMBER_SCAN[member][1]
     return bool(np.isclose(value, grid[0]) or np.isclose(value, grid[-1]))
 
