@@ -49,7 +49,7 @@ from geosim.diagnose.stage_resampling_coherent import (
 from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, fits_no_worse
 
 __all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "ISO_PIXEL_MIN_DCHI2",
-           "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS"]
+           "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS", "MIN_Q"]
 
 #: held-out drop of the residual sum of squares the isotropic blur must bring, in units of
 #: the held-out half's residual variance per pixel, on each half. Set on the development
@@ -66,6 +66,12 @@ MEMBER_SCAN: dict[str, tuple[str, np.ndarray]] = {
     "detector_integration": ("pitch_px", np.round(np.arange(0.6, 2.0 + 1e-9, 0.1), 2)),
     "atmospheric_blur": ("f0_cyc_per_px", np.round(np.arange(0.15, 0.65 + 1e-9, 0.025), 3)),
 }
+#: lowest Q scanned with a member: below it the optics pass content beyond the product
+#: grid's Nyquist, and what the model leaves of its aliases takes a box's or an
+#: atmosphere's shape (the alias-cell weakness, ``docs/limitations.md``): a resampling alone
+#: at Q 1.0 (``tests/test_diagnose_independent.py``, seed 31) reached a held-out Δχ² of
+#: 133 with a 0.8 px detector at Q 0.94; development c196 (Q 0.93, none) 394
+MIN_Q = 1.0
 #: factors on the transfer-refitted Q scanned in the pixels for each scanned member
 Q_FACTORS = (0.9, 0.95, 1.0, 1.05, 1.1)
 #: factors on the model's Q scanned in the pixels for the model without the isotropic blur
@@ -130,17 +136,21 @@ def isotropic_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup, ev: E
     def rss(m: ForwardModel) -> list[float]:
         return rss_on_halves(inp, halves, m)
 
-    # the native grid's phase, on all the evaluation pixels: the models compared share it
+    # the native grid's phase, on all the evaluation pixels: the models compared share it.
+    # Offsets from the model's phase (refined on the power spectrum), which stays a
+    # candidate: a coarse grid alone had replaced it at Q 1.0, and the aliases left by the
+    # wrong phase read as a detector box
     pitch = float(model.blur["resampling"]["native_pitch_px"])
     steps = np.arange(PHASE_STEPS) * pitch / PHASE_STEPS
-    phases = [(float(a), float(b)) for a in steps for b in steps]
+    r0, c0 = model.native_phase_px
+    phases = [(float(r0 + a), float(c0 + b)) for a in steps for b in steps]
     model = model.without(native_phase_px=min(
         phases, key=lambda p: sum(rss(model.without(native_phase_px=p)))))
     base = []
     for f in BASE_Q_FACTORS:
         m = model.without(q=model.q * f)
         base.append((m, rss(m)))
-    q_floor = Q_FLOOR_REL * float(setup.q_grid[0])
+    q_floor = max(Q_FLOOR_REL * float(setup.q_grid[0]), MIN_Q)
     scanned = []
     for name in members:
         key, grid = MEMBER_SCAN[name]
@@ -150,7 +160,7 @@ def isotropic_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup, ev: E
             m1 = model.without(q=fit.q, blur=dict(fit.effects))
             for f in Q_FACTORS:
                 if fit.q * f <= q_floor:
-                    continue   # Q at its bound: the roll-off would take the optics' place
+                    continue   # Q at its bound or below MIN_Q
                 m = m1.without(q=fit.q * f)
                 scanned.append((name, float(v), m, rss(m)))
     return IsotropicScan(halves=halves, base=base, scanned=scanned) if scanned else None
