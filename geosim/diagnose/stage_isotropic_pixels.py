@@ -7,9 +7,10 @@ transfer can weigh: on the development half (round 25's code) 6 of the 17 detect
 atmospheres beside a claimed resampling (no JPEG) were ideally detectable (observer
 Δχ² 3e3-4e4) and went into Q instead (Q fitted 21-70 % high).
 
-In the pixels the resampled product is determined (the native grid's phase chosen on
-the scene, as :mod:`~geosim.diagnose.stage_resampling_coherent` does), so the model with
-the missing roll-off fits the scene pixel by pixel where a wider PSF cannot. Each member
+In the pixels the resampled product is determined (the native grid's phase: the model's,
+refined on the power spectrum, or one of its offsets by thirds of a cell, chosen on the
+scene), so the model with the missing roll-off fits the scene pixel by pixel where a wider
+PSF cannot. No Q below :data:`MIN_Q` is scanned with a member. Each member
 of the isotropic family is scanned over its parameter (Q refitted on the transfer with
 it and the other blurs held, then scanned by factors in the pixels); the member and
 parameter are chosen on one half of the evaluation pixels (left / right of the middle
@@ -53,7 +54,9 @@ __all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "ISO_PIXEL_MIN_
 
 #: held-out drop of the residual sum of squares the isotropic blur must bring, in units of
 #: the held-out half's residual variance per pixel, on each half. Set on the development
-#: half (round 26, the 110 scenes of this stage's domain in round 25's rows, weaker half):
+#: half (round 26, the 110 scenes of this stage's domain in round 25's rows, weaker half;
+#: measured with the first version, whose phase came from a coarse grid alone and whose Q
+#: went down to the floor):
 #: of the 93 without an isotropic blur, one passed with a claimable value (c186, 384: a
 #: smear claimed as off-nadir, whose misfit a 1.0 px detector takes up; c196, 444, left Q
 #: at its floor), the next c276 at 90 (c461 189 and c172 92 at the end of the scan); of
@@ -195,7 +198,7 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     n_half = [int(h.sum()) for h in scan.halves]
     alternatives = []
     for other in members:
-        if other == name:
+        if other == name or not any(n == other for n, _, _, _ in scan.scanned):
             continue
         d = scan.heldout_dchi2(other)
         if min(d) >= ISO_PIXEL_MIN_DCHI2:
