@@ -24,7 +24,7 @@ passes the same test. The model with it must fit no worse than the baseline (as
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,20 +34,20 @@ from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import (
     BLUR_FAMILY,
     EFFECT_SIZE,
-    AcceptedEffect,
     Alternative,
     BlurSelection,
-    delta_bic,
 )
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs
 from geosim.diagnose.stage_resampling_coherent import (
     PHASE_STEPS,
+    append_pixel_step,
     eval_halves,
     heldout_drop,
+    heldout_gain,
     rss_on_halves,
 )
-from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, fits_no_worse
+from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, no_worse_than_baseline
 
 __all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "ISO_PIXEL_MIN_DCHI2",
            "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS", "MIN_Q"]
@@ -184,18 +184,20 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
             or any(BLUR_FAMILY.get(n) == "isotropic" for n in model.blur)):
         return model
     scan = isotropic_scan(inp, model, setup, ev, members)
-    if scan is None or min(scan.heldout_dchi2()) < ISO_PIXEL_MIN_DCHI2:
+    if scan is None:
+        return model
+    dchi2 = scan.heldout_dchi2()
+    if min(dchi2) < ISO_PIXEL_MIN_DCHI2:
         return model
     name, value, chosen = scan.best()
     if _pinned(name, value) or not _sized(name, value):
         return model
-    if not fits_no_worse(inp, chosen, ev):
+    if not no_worse_than_baseline(inp, ev)(chosen):
         # :func:`~geosim.diagnose.stage_withdraw.never_worse` would withdraw it and refit
         # Q on the transfer, losing the Q the resampling's spectrum had put right
         # (development c196: spectral error 0.027 → 0.103)
         return model
     key, grid = MEMBER_SCAN[name]
-    n_half = [int(h.sum()) for h in scan.halves]
     alternatives = []
     for other in members:
         if other == name or not any(n == other for n, _, _, _ in scan.scanned):
@@ -203,18 +205,10 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         d = scan.heldout_dchi2(other)
         if min(d) >= ISO_PIXEL_MIN_DCHI2:
             _, v, _ = scan.best(other)
-            alternatives.append(Alternative(other, min(x / n for x, n in zip(d, n_half,
-                                                                            strict=True)),
+            alternatives.append(Alternative(other, heldout_gain(scan.halves, d),
                                             {MEMBER_SCAN[other][0]: v}))
     # the transfer's χ² at the chosen Q (for the ΔBIC reported; the claim rests on the pixels)
     fit = fit_transfer(setup.full, [], fix_q=chosen.q, fixed=dict(chosen.blur))
-    prev = sel.steps[-1].fit if sel.steps else sel.null
-    step_fit = replace(fit, sigmas={**prev.sigmas, name: {key: float(grid[1] - grid[0])}},
-                       n_params=prev.n_params + 1)
-    dchi2 = scan.heldout_dchi2()
-    gain = min(d / n for d, n in zip(dchi2, n_half, strict=True))
-    sel.steps.append(AcceptedEffect(name, delta_bic(prev, step_fit, 2 * setup.full.t_real.size),
-                                    float(gain), alternatives, step_fit))
-    sel.cv_gain[name] = float(gain)
-    sel.final = step_fit
+    append_pixel_step(sel, setup, name, fit, {name: {key: float(grid[1] - grid[0])}}, 1,
+                      heldout_gain(scan.halves, dchi2), alternatives)
     return chosen

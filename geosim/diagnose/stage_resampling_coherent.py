@@ -23,12 +23,14 @@ ways round.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from geosim.diagnose.context import EvalContext
+from geosim.diagnose.fit import TransferFit
 from geosim.diagnose.model import ForwardModel
-from geosim.diagnose.select import AcceptedEffect, BlurSelection, delta_bic
+from geosim.diagnose.select import AcceptedEffect, Alternative, BlurSelection, delta_bic
 from geosim.diagnose.stage_aliasing import (
     PITCH_SCAN,
     PITCH_STEP,
@@ -40,7 +42,8 @@ from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
 __all__ = ["coherent_resampling", "CoherentScan", "coherent_scan", "COHERENT_MIN_DCHI2",
-           "PHASE_STEPS", "Q_SCAN", "eval_halves", "rss_on_halves", "heldout_drop"]
+           "PHASE_STEPS", "Q_SCAN", "eval_halves", "rss_on_halves", "heldout_drop",
+           "heldout_gain", "append_pixel_step"]
 
 #: held-out drop of the residual sum of squares a resampling must bring, in units of the
 #: held-out half's residual variance per pixel (a Δχ² with the residual as the noise), on
@@ -102,6 +105,27 @@ def heldout_drop(halves: list[np.ndarray], base: list[list[float]],
         var = b0 / max(int(halves[o].sum()), 1)
         out.append((b0 - b1) / max(var, 1e-12))
     return out
+
+
+def heldout_gain(halves: list[np.ndarray], dchi2: list[float]) -> float:
+    """The weaker half's held-out drop (:func:`heldout_drop`) as a fraction of that half's
+    residual sum of squares (the ``heldout_gain`` a pixel-test claim records)."""
+    return float(min(d / int(h.sum()) for d, h in zip(dchi2, halves, strict=True)))
+
+
+def append_pixel_step(sel: BlurSelection, setup: SpectralSetup, name: str, fit: TransferFit,
+                      sigmas: dict[str, Any], n_new: int, gain: float,
+                      alternatives: list[Alternative]) -> None:
+    """Record an effect a pixel test claimed as the selection's next step: ``fit`` (the
+    transfer fit with it held) with the previous step's uncertainties updated by
+    ``sigmas`` and ``n_new`` more parameters; its ΔBIC on the transfer is reported as
+    evidence, the claim rests on the held-out ``gain``."""
+    prev = sel.steps[-1].fit if sel.steps else sel.null
+    step_fit = replace(fit, sigmas={**prev.sigmas, **sigmas}, n_params=prev.n_params + n_new)
+    sel.steps.append(AcceptedEffect(name, delta_bic(prev, step_fit, 2 * setup.full.t_real.size),
+                                    gain, alternatives, step_fit))
+    sel.cv_gain[name] = gain
+    sel.final = step_fit
 
 
 def eval_halves(ev: EvalContext) -> list[np.ndarray] | None:
@@ -171,14 +195,7 @@ def coherent_resampling(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     if pinned_in_scan(params["native_pitch_px"]):
         return model   # at an end of the scan: standing in for a shape resampling lacks
     _, fit = with_resampling(setup, model, params)
-    prev = sel.steps[-1].fit if sel.steps else sel.null
-    sigmas = {**prev.sigmas, **fit.sigmas,
-              name: {"native_pitch_px": PITCH_STEP, "cubic_a": 0.25}}
-    step_fit = replace(fit, sigmas=sigmas, n_params=prev.n_params + 2)
-    n_half = [int(h.sum()) for h in scan.halves]
-    gain = min(d / n for d, n in zip(dchi2, n_half, strict=True))
-    sel.steps.append(AcceptedEffect(name, delta_bic(prev, step_fit, 2 * setup.full.t_real.size),
-                                    float(gain), [], step_fit))
-    sel.cv_gain[name] = float(gain)
-    sel.final = step_fit
+    append_pixel_step(sel, setup, name, fit,
+                      {**fit.sigmas, name: {"native_pitch_px": PITCH_STEP, "cubic_a": 0.25}},
+                      2, heldout_gain(scan.halves, dchi2), [])
     return chosen
