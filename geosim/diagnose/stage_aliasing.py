@@ -28,8 +28,8 @@ from geosim.diagnose.stage_noise import realisations
 from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, jpeg_native_floor_px
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
-__all__ = ["aliasing_test", "split_halves", "resampling_detection_limit", "with_resampling",
-           "pinned_in_scan", "PITCH_SCAN", "PITCH_STEP",
+__all__ = ["aliasing_test", "refined_from", "split_halves", "resampling_detection_limit",
+           "with_resampling", "pinned_in_scan", "PITCH_SCAN", "PITCH_STEP",
            "ALIASING_SPECTRAL_GAIN", "ALIASING_SPECTRAL_GAIN_SPLIT"]
 
 #: resampling not chosen by the transfer fit is still claimed when its aliasing, which the
@@ -165,7 +165,7 @@ def aliasing_test(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
             return se_on(delivered(m), origins)
 
         starts = [fitted[grid[j]][0] for j in refine_starts(scores, grid)]
-        return _refined_from(setup, starts, score)[0]
+        return refined_from(setup, starts, score)[0]
 
     heldout = []
     for k in (0, 1):  # choose (and refine) on half k, validate on the other
@@ -255,7 +255,7 @@ def refine_starts(scores: np.ndarray, grid: list[tuple],
     return out
 
 
-def _refined_from(setup: SpectralSetup, starts: list[ForwardModel],
+def refined_from(setup: SpectralSetup, starts: list[ForwardModel],
                   se_of: Callable[[ForwardModel], float]) -> tuple[ForwardModel, float]:
     """The lowest-scoring of ``starts`` (models with a resampling) and of their pitch, Q
     and native-grid phase refined together on the power spectrum
@@ -322,7 +322,7 @@ def _on_spectrum(setup: SpectralSetup, model: ForwardModel,
         for a in (OPENCV_A, KEYS_A)]   # a kernel at the fit's bound: each real one
     if model.noise is not None and model.noise.claimed:   # as scan_on_transfer
         own += [m.without(noise=None) for m in own]
-    best, se_best = _refined_from(setup, own + [fitted[grid[j]][0]
+    best, se_best = refined_from(setup, own + [fitted[grid[j]][0]
                                                 for j in refine_starts(scores, grid)], se_of)
     return best if se_best < se_of(model) else model
 
