@@ -89,3 +89,30 @@ def test_resampling_refined_on_the_spectrum_with_the_new_blur_held(monkeypatch):
         out[refine] = (se_ref, d.summary["refined"]["spectral_error"], d.summary["refined"]["q"])
     assert out[True][0] <= out[False][0] and out[True][1] <= out[False][1], out
     assert abs(out[True][2] - 1.6) <= 0.05, out
+
+
+def test_alternative_members_pass_the_same_held_out_test():
+    """The other member is an alternative only where it passes the held-out test on both
+    halves; a member with no scanned configuration (every Q below MIN_Q) is skipped, not
+    an error (development c196 had raised min() of an empty sequence)."""
+    left = np.zeros((10, 200), bool)
+    left[:, :100] = True
+    halves = [left, ~left]                   # 1000 pixels each
+    base = [("b", [1000.0, 1000.0])]         # residual variance 1 DN² per pixel
+    members = ["detector_integration", "atmospheric_blur"]
+    claimed = ("atmospheric_blur", 0.4, "a04", [0.0, 0.0])
+    weak = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
+                         scanned=[("detector_integration", 1.2, "d12", [950.0, 950.0]),
+                                  claimed])
+    # the detector lowers each held-out half by 50 < ISO_PIXEL_MIN_DCHI2 (100)
+    assert iso.member_alternatives(weak, "atmospheric_blur", members) == []
+    strong = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
+                           scanned=[("detector_integration", 1.2, "d12", [800.0, 850.0]),
+                                    claimed])
+    # chosen on the left, the right drops 150; on the right, the left drops 200
+    alts = iso.member_alternatives(strong, "atmospheric_blur", members)
+    assert [(a.name, a.params) for a in alts] == [("detector_integration", {"pitch_px": 1.2})]
+    assert alts[0].cv_gain == pytest.approx(150 / 1000)
+    only_one = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
+                             scanned=[claimed])
+    assert iso.member_alternatives(only_one, "atmospheric_blur", members) == []

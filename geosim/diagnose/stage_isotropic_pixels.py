@@ -54,7 +54,8 @@ from geosim.diagnose.stage_resampling_coherent import (
 )
 from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, no_worse_than_baseline
 
-__all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "ISO_PIXEL_MIN_DCHI2",
+__all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "member_alternatives",
+           "ISO_PIXEL_MIN_DCHI2", "REFINE_ON_SPECTRUM",
            "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS", "MIN_Q"]
 
 #: held-out drop of the residual sum of squares the isotropic blur must bring, in units of
@@ -182,6 +183,24 @@ def isotropic_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup, ev: E
 REFINE_ON_SPECTRUM = True
 
 
+def member_alternatives(scan: IsotropicScan, claimed: str, members: list[str]
+                        ) -> list[Alternative]:
+    """The members other than ``claimed`` that pass the same held-out test
+    (:data:`ISO_PIXEL_MIN_DCHI2` on both halves), each with its weaker half's gain and its
+    best value; a member with no scanned configuration (every Q below :data:`MIN_Q`) is
+    not one (development c196)."""
+    out = []
+    for other in members:
+        if other == claimed or not any(n == other for n, _, _, _ in scan.scanned):
+            continue
+        d = scan.heldout_dchi2(other)
+        if min(d) >= ISO_PIXEL_MIN_DCHI2:
+            _, v, _ = scan.best(other)
+            out.append(Alternative(other, heldout_gain(scan.halves, d),
+                                   {MEMBER_SCAN[other][0]: v}))
+    return out
+
+
 def _on_spectrum_held(inp: Inputs, setup: SpectralSetup, ev: EvalContext,
                       model: ForwardModel) -> ForwardModel:
     """``model``'s resampling pitch, Q and native phase refined together on the power
@@ -225,15 +244,7 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         # (development c196: spectral error 0.027 → 0.103)
         return model
     key, grid = MEMBER_SCAN[name]
-    alternatives = []
-    for other in members:
-        if other == name or not any(n == other for n, _, _, _ in scan.scanned):
-            continue
-        d = scan.heldout_dchi2(other)
-        if min(d) >= ISO_PIXEL_MIN_DCHI2:
-            _, v, _ = scan.best(other)
-            alternatives.append(Alternative(other, heldout_gain(scan.halves, d),
-                                            {MEMBER_SCAN[other][0]: v}))
+    alternatives = member_alternatives(scan, name, members)
     # the transfer's χ² at the chosen Q (for the ΔBIC reported; the claim rests on the pixels)
     fit = fit_transfer(setup.full, [], fix_q=chosen.q, fixed=dict(chosen.blur))
     append_pixel_step(sel, setup, name, fit, {name: {key: float(grid[1] - grid[0])}}, 1,
