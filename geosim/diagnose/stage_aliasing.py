@@ -256,7 +256,7 @@ def refine_starts(scores: np.ndarray, grid: list[tuple],
 
 
 def refined_from(setup: SpectralSetup, starts: list[ForwardModel],
-                  se_of: Callable[[ForwardModel], float]) -> tuple[ForwardModel, float]:
+                 se_of: Callable[[ForwardModel], float]) -> tuple[ForwardModel, float]:
     """The lowest-scoring of ``starts`` (models with a resampling) and of their pitch, Q
     and native-grid phase refined together on the power spectrum
     (:func:`~geosim.diagnose.resampling_refine.refine_resampling`, within the pitch scan
@@ -323,7 +323,7 @@ def _on_spectrum(setup: SpectralSetup, model: ForwardModel,
     if model.noise is not None and model.noise.claimed:   # as scan_on_transfer
         own += [m.without(noise=None) for m in own]
     best, se_best = refined_from(setup, own + [fitted[grid[j]][0]
-                                                for j in refine_starts(scores, grid)], se_of)
+                                               for j in refine_starts(scores, grid)], se_of)
     return best if se_best < se_of(model) else model
 
 

@@ -177,10 +177,10 @@ def isotropic_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup, ev: E
 
 #: refine the resampling's pitch, Q and phase on the power spectrum once the blur is
 #: claimed (not before the baseline test: refined first, c692's false detector passed it).
-#: Round 27, development (the 10 scenes where the stage claims): the benchmark's spectral
-#: error of the refined simulation fell in 7 (c196 0.113 → 0.028, c404 0.032 → 0.022,
-#: c154 0.053 → 0.044) and rose in 3 (c102 0.036 → 0.043, c762 0.041 → 0.048, c24 0.060 →
-#: 0.062); claims unchanged
+#: Round 27, development (the 11 scenes where the stage claims): the benchmark's spectral
+#: error of the refined simulation fell in 8 (c196 0.113 → 0.028, c833 0.043 → 0.030, c404
+#: 0.032 → 0.022, c154 0.053 → 0.044, ...) and rose in 3 (c102 0.036 → 0.043, c762 0.041 →
+#: 0.048, c24 0.060 → 0.062); claims unchanged
 REFINE_ON_SPECTRUM = True
 
 
