@@ -205,13 +205,13 @@ def member_alternatives(scan: IsotropicScan, claimed: str, members: list[str]
 def _on_spectrum_held(inp: Inputs, setup: SpectralSetup, ev: EvalContext,
                       model: ForwardModel) -> ForwardModel:
     """``model``'s resampling pitch, Q and native phase refined together on the power
-    spectrum with the isotropic blur held (:func:`~geosim.diagnose.stage_aliasing.refined_from`);
-    ``model`` itself where that scores no lower."""
+    spectrum with the isotropic blur held (:func:`~geosim.diagnose.stage_aliasing.refined_from`,
+    which with ``model`` as its one start returns ``model`` itself unless a refinement
+    scores strictly lower)."""
     def se_of(m: ForwardModel) -> float:
         return ev.spectral_error(realisations(inp, m, ev.noise_seed))
 
-    best, se_best = refined_from(setup, [model], se_of)
-    return best if se_best < se_of(model) else model
+    return refined_from(setup, [model], se_of)[0]
 
 
 def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
