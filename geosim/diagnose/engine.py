@@ -24,25 +24,28 @@ its trace in the pixels) and
 simulation may not fit worse than the baseline) →
 :func:`~geosim.diagnose.stage_claims.claim_effects` →
 :func:`~geosim.diagnose.stage_change.model_moved_objects` (a claimed scene change modelled
-as moved objects, :mod:`~geosim.diagnose.stage_objects`) and
+as moved objects, :mod:`~geosim.diagnose.stage_objects`), these three in
+:func:`judge_refined`, judged again on the configured Welch blocks where the fit's were
+smaller and the refined simulation is worse there (:func:`~geosim.diagnose.context.whole_extents`) →
 :func:`~geosim.diagnose.stage_summary.make_summary`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from geosim.diagnose import locate
-from geosim.diagnose.context import ChangedRegions, EvalContext, FitWindow
+from geosim.diagnose.context import ChangedRegions, EvalContext, FitWindow, whole_extents
 from geosim.diagnose.effects import BLUR_EFFECTS
-from geosim.diagnose.model import ForwardModel
+from geosim.diagnose.model import Claim, ForwardModel
+from geosim.diagnose.select import BlurSelection
 from geosim.diagnose.spectra import block_origins
 from geosim.diagnose.stage_aliasing import aliasing_test
-from geosim.diagnose.stage_blur import adopt, select_with_q_room
+from geosim.diagnose.stage_blur import SpectralSetup, adopt, select_with_q_room
 from geosim.diagnose.stage_change import (
     MIN_REGION_DN2,
     changed_regions,
@@ -50,7 +53,7 @@ from geosim.diagnose.stage_change import (
     resampling_phase_dn2,
 )
 from geosim.diagnose.stage_claims import claim_effects
-from geosim.diagnose.stage_inputs import grey, make_inputs
+from geosim.diagnose.stage_inputs import Inputs, grey, make_inputs
 from geosim.diagnose.stage_isotropic_pixels import pixel_isotropic
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
 from geosim.diagnose.stage_jpeg_refit import (
@@ -69,6 +72,7 @@ from geosim.diagnose.stage_withdraw import (
     jpeg_delivered_isotropic,
     jpeg_resampling_beyond_optics,
     never_worse,
+    no_worse_than_baseline,
 )
 
 __all__ = ["Diagnosis", "diagnose_arrays", "blockiness", "PHYSICAL_Q"]
@@ -87,6 +91,39 @@ class Diagnosis:
     regions: list[locate.Region] = field(default_factory=list)
     labels: np.ndarray | None = None
     plots: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class JudgedRefinement:
+    """What :func:`judge_refined` keeps: the refined model, the effects it withdrew
+    (``{"name", "reason"}``) and the claims made from what it kept."""
+
+    model: ForwardModel
+    withdrawn: list[dict[str, str]]
+    claims: list[Claim]
+
+
+def judge_refined(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
+                  ev: EvalContext, change: ChangedRegions, found: ForwardModel,
+                  se_wholes: list[Callable[[np.ndarray], float]]) -> JudgedRefinement:
+    """The refined model no worse than the baseline on ``ev``'s blocks and by every
+    measure of ``se_wholes`` (:func:`~geosim.diagnose.stage_withdraw.never_worse`), the
+    claims made from what it keeps (registration, compression, seam and radiometry as
+    ``found``: the model the stages found, before any withdrawal), and a claimed scene
+    change modelled as moved objects where they fit better by the same measures."""
+    model, withdrawn = never_worse(inp, model, sel, setup, ev, se_wholes)
+    claims = claim_effects(inp, model.without(registration=found.registration,
+                                              compression=found.compression,
+                                              seam=found.seam, radiometry=found.radiometry),
+                           sel, change, ev)
+    if any(c.name == "scene_change" for c in claims):
+        # the claimed change modelled: moved objects in the refined simulation
+        model = model_moved_objects(inp, model, change, ev, se_wholes)
+        for c in claims:
+            if c.name == "scene_change":
+                c.params["n_objects_modelled"] = (len(model.objects.objects)
+                                                  if model.objects is not None else 0)
+    return JudgedRefinement(model=model, withdrawn=withdrawn, claims=claims)
 
 
 def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *,
@@ -188,28 +225,26 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     model, withdrawn_alias = jpeg_resampling_beyond_optics(inp, model, sel, setup)
     found = model
-    # the same judgement over every valid block (the changed regions included)
-    whole = replace(ev, mask=inp.valid, origins=block_origins(
-        inp.valid.shape, block_px=setup.block_px, valid=inp.valid))
     model, withdrawn_iso = jpeg_delivered_isotropic(inp, model, sel, setup, ev)
-    se_whole = whole.spectral_error if len(whole.origins) >= 4 else None
-    model, withdrawn = never_worse(inp, model, sel, setup, ev, se_whole)
-    withdrawn = withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso + withdrawn
-    claims = claim_effects(inp, model.without(registration=reg, compression=found.compression,
-                                              seam=found.seam, radiometry=found.radiometry),
-                           sel, change, ev)
-    if any(c.name == "scene_change" for c in claims):
-        # the claimed change modelled: moved objects in the refined simulation
-        model = model_moved_objects(inp, model, change, ev, se_whole)
-        for c in claims:
-            if c.name == "scene_change":
-                c.params["n_objects_modelled"] = (len(model.objects.objects)
-                                                  if model.objects is not None else 0)
+    # the same judgement over every valid block (the changed regions included) on the
+    # fit's Welch blocks; where changes put the fit on smaller blocks than the configured
+    # ones and the refined simulation as delivered is worse there, judged again on both
+    wholes = whole_extents(ev, inp.valid, (inp.block_px, setup.block_px))
+    fit_whole = [w for w in wholes if w.block_px == setup.block_px]
+    judged = judge_refined(inp, model, sel, setup, ev, change, found,
+                           [w.spectral_error for w in fit_whole])
+    every = [w.spectral_error for w in wholes]
+    if len(wholes) > len(fit_whole) and not no_worse_than_baseline(inp, ev, every)(
+            judged.model):
+        judged = judge_refined(inp, model, sel, setup, ev, change, found, every)
+    model, claims = judged.model, judged.claims
+    withdrawn = (withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso
+                 + judged.withdrawn)
     refined = model.delivered(simulate, np.random.default_rng(ev.noise_seed),
                               quantized=inp.quantized)
     summary = make_summary(inp, model, sel, setup, claims, ev, refined, withdrawn,
                            resampling_tested="resampling" in window.candidates,
-                           se_whole=se_whole)
+                           whole=wholes[0] if wholes else None)
     maps = mismatch_maps(inp, model, energy)
     plots = plot_data(inp, model, sel, setup, ev, refined, summary)
     return Diagnosis(summary=summary, real=inp.real, baseline=inp.base, refined=refined,

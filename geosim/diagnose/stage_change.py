@@ -5,7 +5,7 @@ claim and the moved objects that model it in the refined simulation
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -99,18 +99,18 @@ def scene_change_claim(inp: Inputs, model: ForwardModel, sc: list[locate.Region]
 
 
 def model_moved_objects(inp: Inputs, model: ForwardModel, change: ChangedRegions,
-                        ev: EvalContext, se_whole: Callable[[np.ndarray], float] | None
+                        ev: EvalContext, se_wholes: Sequence[Callable[[np.ndarray], float]]
                         ) -> ForwardModel:
     """The refined model with the moved objects of the ``scene_change`` regions
     (:func:`~geosim.diagnose.stage_objects.fit_moved_objects`), fitted on the residual of
     its deterministic image; kept only where the delivered simulation then fits the
-    scene's spectrum better over the whole valid extent (``se_whole``, the changed areas
-    included) and, as every refined simulation, no worse than the baseline there and on
-    the evaluation blocks (``ev``: outside the changed regions, which the objects do not
-    reach, or the fit's blocks where fewer than 4 lie outside them). ``model`` as it is
-    otherwise, and always where the scene has fewer than 4 whole blocks (``se_whole``
-    None)."""
-    if se_whole is None:
+    scene's spectrum better over the whole valid extent (every measure of ``se_wholes``,
+    the changed areas included: :func:`~geosim.diagnose.context.whole_extents`) and, as
+    every refined simulation, no worse than the baseline there and on the evaluation
+    blocks (``ev``: outside the changed regions, which the objects do not reach, or the
+    fit's blocks where fewer than 4 lie outside them). ``model`` as it is otherwise, and
+    always where the scene has fewer than 4 whole blocks (``se_wholes`` empty)."""
+    if not se_wholes:
         return model
     det = model.deterministic(inp.simulate)
     objects = fit_moved_objects(inp.real - det, change.inner, change.labels,
@@ -124,9 +124,8 @@ def model_moved_objects(inp: Inputs, model: ForwardModel, change: ChangedRegions
                            quantized=inp.quantized)
 
     base = np.round(inp.base) if inp.quantized else inp.base
-    after = delivered(with_objects)
-    whole_after = se_whole(after)
-    if (whole_after < se_whole(delivered(model)) and whole_after <= se_whole(base)
+    after, before = delivered(with_objects), delivered(model)
+    if (all(se(after) < se(before) and se(after) <= se(base) for se in se_wholes)
             and ev.spectral_error(after) <= ev.spectral_error(base)):
         return with_objects
     return model

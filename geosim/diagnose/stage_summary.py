@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -47,21 +46,23 @@ def _ambiguity_note(claim: Claim) -> str:
 def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: SpectralSetup,
                  claims: list[Claim], ev: EvalContext, refined: np.ndarray,
                  withdrawn: list[dict[str, str]], *, resampling_tested: bool = True,
-                 se_whole: Callable[[np.ndarray], float] | None = None) -> dict[str, Any]:
+                 whole: EvalContext | None = None) -> dict[str, Any]:
     """The JSON-able summary written to ``diagnosis.json`` (baseline, effects, refined
     fit, ambiguities, detection limits at the delivered Q, withdrawals, candidates,
     co-registration, noise, settings); RMSEs
     over ``ev.mask``, spectral errors on ``ev``'s blocks. ``resampling_tested``: whether
     resampling was among the candidates (its detection limit is then stated too);
-    ``se_whole``: the spectral error over every valid block, the changed regions included
-    (``spectral_error_whole`` of the baseline and the refined simulation; NaN without)."""
+    ``whole``: the judgement over every valid block, the changed regions included
+    (:func:`~geosim.diagnose.context.whole_extents`; ``spectral_error_whole`` of the
+    baseline and the refined simulation, NaN without)."""
     eval_mask, se_of = ev.mask, ev.spectral_error
     base_rmse = rmse(inp.base, inp.real, eval_mask)
     base_se = se_of(np.round(inp.base) if inp.quantized else inp.base)
     ref_rmse = rmse(model.deterministic(inp.simulate), inp.real, eval_mask)
     ref_se = se_of(refined)
-    whole_base, whole_ref = ((se_whole(np.round(inp.base) if inp.quantized else inp.base),
-                              se_whole(refined)) if se_whole is not None
+    whole_base, whole_ref = ((whole.spectral_error(np.round(inp.base) if inp.quantized
+                                                   else inp.base),
+                              whole.spectral_error(refined)) if whole is not None
                              else (float("nan"), float("nan")))
     ambiguities = [{"claimed": c.name, "alternatives": [a["name"] for a in c.alternatives],
                     "note": _ambiguity_note(c)} for c in claims if c.alternatives]
@@ -93,7 +94,8 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
                                  "simulations as delivered (with the refined noise realisation, "
                                  "rounded to whole DN when the real scene is) on the blocks "
                                  "outside the changed regions, spectral_error_whole on every "
-                                 "valid block (the changed regions included)",
+                                 "valid block (the changed regions included) of "
+                                 "settings.block_px_whole",
                     # scene change modelled: the moved objects in the refined simulation
                     "moved_objects": ([o.to_json(inp.gsd_m) for o in model.objects.objects]
                                       if model.objects is not None else [])},
@@ -118,7 +120,9 @@ def make_summary(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: Sp
                              else blockiness(grey(inp.real - band_affine(
                                  reg.move(inp.base), inp.real, inp.valid)), inp.valid)),
         "radiometry_bic": model.radiometry.bic if model.radiometry is not None else {},
-        "settings": {"block_px": setup.block_px, "q_grid": [float(q) for q in q_grid],
+        "settings": {"block_px": setup.block_px,
+                     "block_px_whole": whole.block_px if whole is not None else None,
+                     "q_grid": [float(q) for q in q_grid],
                      "n_blocks": setup.full.n_blocks, "cv_folds": len(setup.folds),
                      "held_out": bool(setup.folds), "blocks_screened_out": setup.n_screened},
     }
