@@ -69,10 +69,10 @@ from geosim.diagnose.stage_resampling_coherent import coherent_resampling
 from geosim.diagnose.stage_summary import PHYSICAL_Q, make_summary, mismatch_maps, plot_data
 from geosim.diagnose.stage_withdraw import (
     blur_at_q_floor,
+    delivered_no_worse,
     jpeg_delivered_isotropic,
     jpeg_resampling_beyond_optics,
     never_worse,
-    no_worse_than_baseline,
 )
 
 __all__ = ["Diagnosis", "diagnose_arrays", "blockiness", "PHYSICAL_Q"]
@@ -233,15 +233,16 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     fit_whole = [w for w in wholes if w.block_px == setup.block_px]
     judged = judge_refined(inp, model, sel, setup, ev, change, found,
                            [w.spectral_error for w in fit_whole])
+    refined = judged.model.delivered(simulate, np.random.default_rng(ev.noise_seed),
+                                     quantized=inp.quantized)
     every = [w.spectral_error for w in wholes]
-    if len(wholes) > len(fit_whole) and not no_worse_than_baseline(inp, ev, every)(
-            judged.model):
+    if len(wholes) > len(fit_whole) and not delivered_no_worse(inp, ev, every)(refined):
         judged = judge_refined(inp, model, sel, setup, ev, change, found, every)
+        refined = judged.model.delivered(simulate, np.random.default_rng(ev.noise_seed),
+                                         quantized=inp.quantized)
     model, claims = judged.model, judged.claims
     withdrawn = (withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso
                  + judged.withdrawn)
-    refined = model.delivered(simulate, np.random.default_rng(ev.noise_seed),
-                              quantized=inp.quantized)
     summary = make_summary(inp, model, sel, setup, claims, ev, refined, withdrawn,
                            resampling_tested="resampling" in window.candidates,
                            whole=wholes[0] if wholes else None)

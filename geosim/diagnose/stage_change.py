@@ -16,6 +16,7 @@ from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_objects import fit_moved_objects
 from geosim.diagnose.stage_radiometry import affine_residual
+from geosim.diagnose.stage_withdraw import delivered_no_worse
 
 __all__ = ["changed_regions", "scene_change_claim", "resampling_phase_dn2",
            "model_moved_objects", "MIN_REGION_DN2"]
@@ -123,9 +124,8 @@ def model_moved_objects(inp: Inputs, model: ForwardModel, change: ChangedRegions
         return m.delivered(inp.simulate, np.random.default_rng(ev.noise_seed),
                            quantized=inp.quantized)
 
-    base = np.round(inp.base) if inp.quantized else inp.base
     after, before = delivered(with_objects), delivered(model)
-    if (all(se(after) < se(before) and se(after) <= se(base) for se in se_wholes)
-            and ev.spectral_error(after) <= ev.spectral_error(base)):
+    if (all(se(after) < se(before) for se in se_wholes)
+            and delivered_no_worse(inp, ev, se_wholes)(after)):
         return with_objects
     return model

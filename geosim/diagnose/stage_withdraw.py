@@ -22,6 +22,7 @@ from geosim.diagnose.stage_register import unapplied
 
 __all__ = ["refit_without", "blur_at_q_floor", "jpeg_resampling_beyond_optics",
            "jpeg_delivered_isotropic", "never_worse", "no_worse_than_baseline",
+           "delivered_no_worse",
            "JPEG_ISOTROPIC_SPECTRAL_GAIN",
            "Q_FLOOR_REL", "native_nyquist_floor_px", "optics_pass_native_nyquist",
            "jpeg_native_floor_px", "JPEG_NYQUIST_MARGIN"]
@@ -155,21 +156,32 @@ def jpeg_delivered_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelectio
                       "spectrum is not clearly closer with it"} for n in iso]
 
 
-def no_worse_than_baseline(inp: Inputs, ev: EvalContext,
-                           se_wholes: Sequence[Callable[[np.ndarray], float]] = ()
-                           ) -> Callable[[ForwardModel], bool]:
-    """The test ``ok(m)``: whether ``m``'s delivered realisation (noise from
-    ``ev.noise_seed``: what is compared with the real scene downstream) has a spectral
-    error no larger than the baseline's on ``ev``'s blocks and by every measure of
-    ``se_wholes`` (over the whole extent; the baseline's errors computed once, here)."""
+def delivered_no_worse(inp: Inputs, ev: EvalContext,
+                       se_wholes: Sequence[Callable[[np.ndarray], float]] = ()
+                       ) -> Callable[[np.ndarray], bool]:
+    """The test ``ok(img)``: whether a delivered image (bands-first or grey, DN, on the
+    0.5 m grid) has a spectral error no larger than the baseline's on ``ev``'s blocks and
+    by every measure of ``se_wholes`` (over the whole extent; the baseline's errors
+    computed once, here)."""
     base = np.round(inp.base) if inp.quantized else inp.base
     measures = [ev.spectral_error, *se_wholes]
     base_errors = [se(base) for se in measures]
 
-    def ok(m: ForwardModel) -> bool:
-        img = m.delivered(inp.simulate, np.random.default_rng(ev.noise_seed),
-                          quantized=inp.quantized)
+    def ok(img: np.ndarray) -> bool:
         return all(se(img) <= b for se, b in zip(measures, base_errors, strict=True))
+    return ok
+
+
+def no_worse_than_baseline(inp: Inputs, ev: EvalContext,
+                           se_wholes: Sequence[Callable[[np.ndarray], float]] = ()
+                           ) -> Callable[[ForwardModel], bool]:
+    """The test ``ok(m)``: :func:`delivered_no_worse` on ``m``'s delivered realisation
+    (noise from ``ev.noise_seed``: what is compared with the real scene downstream)."""
+    ok_image = delivered_no_worse(inp, ev, se_wholes)
+
+    def ok(m: ForwardModel) -> bool:
+        return ok_image(m.delivered(inp.simulate, np.random.default_rng(ev.noise_seed),
+                                    quantized=inp.quantized))
     return ok
 
 
