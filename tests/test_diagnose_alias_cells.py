@@ -1,18 +1,27 @@
-"""The alias-cell transfer model (benchmarks/diagnose_alias_cells.py, a prototype not yet
-in the diagnosis) sees a detector box that acts before sampling at low Q, where the
-product-grid model cannot, and equals it where nothing aliases."""
+"""The alias-cell transfer model sees a blur that acts before sampling at low Q, where the
+product-grid model cannot, and equals it where nothing aliases: first in the prototype
+(benchmarks/diagnose_alias_cells.py), then in the diagnosis (geosim.diagnose.alias_cells,
+its fits and its exact model), against blurs applied on the fine grid with scipy."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from scipy import ndimage
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_alias_cells as alias  # noqa: E402
+
+from geosim.diagnose.alias_cells import alias_pieces, cell_parts  # noqa: E402
+from geosim.diagnose.exact import ExactSimulations  # noqa: E402
+from geosim.diagnose.fit import build_spectral_data, fit_transfer  # noqa: E402
+from geosim.diagnose.simulate import QSimulator  # noqa: E402
+from geosim.physics.radiometry import luma  # noqa: E402
 
 
 def test_a_low_q_box_is_recovered_by_the_alias_cell_model_only():
@@ -30,3 +39,86 @@ def test_the_models_agree_where_nothing_aliases():
     r = alias.run_case(3, 2.3, "detector_integration", 1.4, [])
     assert r["gain_alias_cells"] == pytest.approx(r["gain_product_grid"], rel=0.01)
     assert r["alias_cells"]["q"] == pytest.approx(r["product_grid"]["q"], rel=0.01)
+
+
+# ---------------------------------------------------------------- in the diagnosis
+# geosim.diagnose.alias_cells: the same model inside the transfer fits and the exact model.
+
+def _texture(n_fine: int, seed: int) -> np.ndarray:
+    """A 1/f texture on the fine grid, three equal bands (grey = the texture)."""
+    rng = np.random.default_rng(seed)
+    fy = np.fft.fftfreq(n_fine)[:, None]
+    fx = np.fft.fftfreq(n_fine)[None, :]
+    spec = np.fft.fft2(rng.normal(size=(n_fine, n_fine))) / np.maximum(np.hypot(fy, fx),
+                                                                        2.0 / n_fine)
+    img = np.real(np.fft.ifft2(spec))
+    img = 120.0 + 40.0 * img / img.std()
+    return np.repeat(img[np.newaxis], 3, axis=0)
+
+
+def test_cell_parts_split_a_cosine_by_its_alias_cell():
+    # 1.2 cycles per product pixel along the columns (phi 10): cells (0, +1) and (0, -1)
+    phi, n = 10, 400
+    x = np.arange(n)
+    cosine = np.cos(2 * np.pi * 1.2 / phi * x)[np.newaxis, :].repeat(n, axis=0)
+    parts = cell_parts(cosine, phi)
+    both = np.real(parts[(0, 1)] + parts[(0, -1)])
+    # away from the reflect padding's seams (their leakage: ~2 % of the amplitude)
+    inner = (slice(40, -40), slice(40, -40))
+    assert np.abs(both[inner] - cosine[inner]).max() < 0.05
+    for cell, part in parts.items():
+        if cell not in ((0, 1), (0, -1)):
+            assert np.abs(part[inner]).max() < 0.05, cell
+
+
+@pytest.mark.parametrize("effect,params,fine_blur", [
+    ("detector_integration", {"pitch_px": 1.5},
+     lambda img: ndimage.uniform_filter(img, size=(1, 15, 15), mode="wrap")),
+    ("motion_smear", {"length_px": 2.1, "direction_deg": 90.0},   # along the columns
+     lambda img: ndimage.uniform_filter(img, size=(1, 1, 21), mode="wrap")),
+])
+def test_exact_render_with_alias_pieces_matches_a_blur_before_sampling(effect, params,
+                                                                       fine_blur):
+    # truth: the blur applied on the 0.05 m grid with scipy (a box of 15 or 21 fine
+    # pixels), then the paper model at Q 0.85 -- what a real sensor does. The exact model
+    # with the alias pieces renders that; the product-grid model (the blur on the sampled
+    # simulation) does not
+    phi, q = 10, 0.85
+    uav = _texture(640, 5)
+    q_grid = [0.75, q, 1.0, 2.5]
+    sim = QSimulator(uav, phi=phi, q_min=0.6)
+    truth = luma(QSimulator(fine_blur(uav), phi=phi, q_min=0.6)(q))
+    sims = [luma(sim(g)) for g in q_grid]
+    pieces = alias_pieces(sim.alias_simulators(), q_grid, q_min=0.6)
+    assert pieces[-1] is None and all(p is not None for p in pieces[:-1])
+    with_cells = ExactSimulations(sims, q_grid, pieces=pieces).image(q, {effect: params})
+    product = ExactSimulations(sims, q_grid).image(q, {effect: params})
+    inner = (slice(6, -6), slice(6, -6))
+    err_cells = np.sqrt(np.mean((with_cells - truth)[inner] ** 2))
+    err_product = np.sqrt(np.mean((product - truth)[inner] ** 2))
+    assert err_cells < 0.25 * err_product
+    assert err_cells < 0.05 * truth.std()
+
+
+def test_transfer_fit_with_alias_pieces_finds_a_low_q_box():
+    # the real scene: a 1.5 px box on the fine grid at Q 0.85 (scipy, as above); the fit
+    # with the pieces recovers pitch and Q, the product-grid fit lets Q absorb the box
+    phi, q = 10, 0.85
+    uav = _texture(1280, 7)
+    sim = QSimulator(uav, phi=phi, q_min=0.6)
+    real = luma(QSimulator(ndimage.uniform_filter(uav, size=(1, 15, 15), mode="wrap"),
+                           phi=phi, q_min=0.6)(q))
+    q_grid = list(np.exp(np.linspace(np.log(0.7), np.log(2.6), 8)))
+    sims = [luma(sim(g)) for g in q_grid]
+    pieces = alias_pieces(sim.alias_simulators(), q_grid, q_min=0.6)
+    origins = [(r, c) for r in range(0, 128 - 32 + 1, 16) for c in range(0, 128 - 32 + 1, 16)]
+    fits = {}
+    for name, pc in (("cells", pieces), ("product", None)):
+        data = build_spectral_data(sims, q_grid, real, origins=origins, block_px=32, pieces=pc)
+        fits[name] = (fit_transfer(data, ["detector_integration"], q_starts=(1.2,)),
+                      fit_transfer(data, [], q_starts=(1.2,)))
+    box, null = fits["cells"]
+    assert box.effects["detector_integration"]["pitch_px"] == pytest.approx(1.5, rel=0.1)
+    assert box.q == pytest.approx(q, rel=0.08)
+    assert null.chi2 - box.chi2 > 10 * max(fits["product"][1].chi2 - fits["product"][0].chi2,
+                                           1.0)

@@ -28,7 +28,8 @@ import numpy as np
 import scipy.fft
 from scipy.optimize import least_squares
 
-from geosim.diagnose.effects import BlurEffect, get_effect
+from geosim.diagnose.alias_cells import ALIAS_CELLS, AliasPieces
+from geosim.diagnose.effects import NON_LSI, BlurEffect, get_effect
 from geosim.diagnose.fit import (
     HANN_CORRELATION,
     TRANSFER_FLOOR,
@@ -52,7 +53,8 @@ class ExactSimulations:
     the real scene after the real blur acted; None: none."""
 
     def __init__(self, sims_grey: Sequence[np.ndarray], q_grid: Sequence[float], *,
-                 taper: np.ndarray | None = None) -> None:
+                 taper: np.ndarray | None = None,
+                 pieces: AliasPieces | None = None) -> None:
         sims = np.stack([np.asarray(s, float) for s in sims_grey])
         self.taper = taper
         self.rows, self.cols = sims.shape[-2:]
@@ -64,6 +66,14 @@ class ExactSimulations:
         self.fy, self.fx = frequency_grid(self.shape, real=True)
         self.log_q = np.log(np.asarray(q_grid, float))
         self.sharpest = apply_taper(sims[0], taper)
+        # the alias cells' parts (complex: full spectra), padded as the simulations
+        self.alias: list[np.ndarray | None] | None = None
+        if pieces is not None and any(pc is not None for pc in pieces):
+            pw = ((0, 0), (self.pad, self.pad), (self.pad, self.pad))
+            self.alias = [None if pc is None else scipy.fft.fft2(
+                np.pad(np.stack([pc[c] for c in ALIAS_CELLS]), pw, mode="reflect"),
+                s=self.shape) for pc in pieces]
+            self.fy_full, self.fx_full = frequency_grid(self.shape)
 
     def image(self, q: float, effects: dict[str, dict[str, float]]) -> np.ndarray:
         """The grey simulation at ``q`` (linear in log q between grid members) filtered by
@@ -73,14 +83,37 @@ class ExactSimulations:
         j = int(np.clip(np.searchsorted(lq, x) - 1, 0, len(lq) - 2))
         t = (x - lq[j]) / (lq[j + 1] - lq[j])
         spec = (1.0 - t) * self.spectra[j] + t * self.spectra[j + 1]
-        for name, params in effects.items():
-            eff = get_effect(name)
-            if not isinstance(eff, BlurEffect):
-                raise ValueError(f"{name} is not a blur effect")
-            spec = spec * eff.transfer(self.fy, self.fx, **params)
+        spec = spec * _transfer(effects, self.fy, self.fx)
         img = scipy.fft.irfft2(spec, s=self.shape)
+        if self.alias is not None and effects and (self.alias[j] is not None
+                                                   or self.alias[j + 1] is not None):
+            # blurs act before sampling: each alias cell's part by H(f + k), not H(f)
+            zero = 0.0
+            a = (1.0 - t) * (self.alias[j] if self.alias[j] is not None else zero) \
+                + t * (self.alias[j + 1] if self.alias[j + 1] is not None else zero)
+            # only the blurs that act on the ground (a resampling acts after sampling)
+            ground = {n: p for n, p in effects.items() if n not in NON_LSI}
+            later = {n: p for n, p in effects.items() if n in NON_LSI}
+            if ground and not later:  # native sampling under a resampling (fit.py)
+                fy, fx = self.fy_full, self.fx_full
+                h0 = _transfer(ground, fy, fx)
+                corr = sum(a[i] * (_transfer(ground, fy + ky, fx + kx) - h0)
+                           for i, (ky, kx) in enumerate(ALIAS_CELLS))
+                img = img + np.real(scipy.fft.ifft2(corr * _transfer(later, fy, fx)))
         return apply_taper(img[self.pad:self.pad + self.rows, self.pad:self.pad + self.cols],
                            self.taper)
+
+
+def _transfer(effects: dict[str, dict[str, float]], fy: np.ndarray, fx: np.ndarray
+              ) -> np.ndarray | float:
+    """∏ H_e(fy, fx) of the blur ``effects`` (1.0 for none)."""
+    h: np.ndarray | float = 1.0
+    for name, params in effects.items():
+        eff = get_effect(name)
+        if not isinstance(eff, BlurEffect):
+            raise ValueError(f"{name} is not a blur effect")
+        h = h * eff.transfer(fy, fx, **params)
+    return h
 
 
 @dataclass

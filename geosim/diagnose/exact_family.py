@@ -30,6 +30,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from geosim.diagnose.alias_cells import AliasPieces
 from geosim.diagnose.exact import ExactBlocks, ExactSimulations, duel, exact_fit, in_sample_best
 from geosim.diagnose.fit import BinFilter, SpectralData, fit_transfer
 from geosim.diagnose.select import (
@@ -59,8 +60,8 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
                full: SpectralData, origins: list[tuple[int, int]],
                fold_groups: Sequence[Sequence[tuple[int, int]]], block_px: int,
                sel: BlurSelection, family: str, q_base: float,
-               keep: BinFilter | None = None, *, taper: np.ndarray | None = None
-               ) -> BlurSelection:
+               keep: BinFilter | None = None, *, taper: np.ndarray | None = None,
+               pieces: AliasPieces | None = None) -> BlurSelection:
     """Decide the claimed member of ``family`` by the exact model's χ² on all blocks.
 
     Parameters
@@ -88,6 +89,9 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
         the fast fit's simulations (:func:`~geosim.diagnose.stage_blur.change_taper`): the
         exact model tapers each render after its blur, as the real scene was tapered after
         the real blur. None: no taper.
+    pieces
+        The simulations' alias-cell parts (as ``full`` was built with), so that the blurs
+        act before sampling; None: none.
 
     Returns
     -------
@@ -105,7 +109,7 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
     qs = (sel.final.q, q_base)
     starts = {m: fit_transfer(full, [*others, m], q_starts=qs) for m in members}
     without = fit_transfer(full, others, q_starts=qs) if others else sel.null
-    sims = ExactSimulations(sims_grey, q_grid, taper=taper)
+    sims = ExactSimulations(sims_grey, q_grid, taper=taper, pieces=pieces)
     blocks = ExactBlocks.build(sims, grey, origins, block_px, keep)
     folds = []
     if len(fold_groups) >= 2:

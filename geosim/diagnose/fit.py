@@ -33,7 +33,8 @@ from functools import cached_property
 import numpy as np
 from scipy.optimize import least_squares
 
-from geosim.diagnose.effects import BlurEffect, get_effect
+from geosim.diagnose.alias_cells import ALIAS_CELLS, AliasPieces
+from geosim.diagnose.effects import NON_LSI, BlurEffect, get_effect
 from geosim.diagnose.spectra import hann2d
 
 __all__ = [
@@ -76,6 +77,10 @@ class SpectralData:
     var: np.ndarray
     n_blocks: int
     coherence: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: (n_cells, n_q, n_f) measured transfers sharpest → the part of the simulation at
+    #: ``q_grid[j]`` folded from each alias cell (:mod:`geosim.diagnose.alias_cells`);
+    #: None: the simulations hold no content beyond the Nyquist (or none was split)
+    alias_g: np.ndarray | None = None
 
     @property
     def n_eff(self) -> float:
@@ -87,14 +92,29 @@ class SpectralData:
         """ln of ``q_grid`` (computed once: :meth:`g_at` runs in every residual of a fit)."""
         return np.log(self.q_grid)
 
-    def g_at(self, q: float) -> np.ndarray:
-        """G(q)(f) by linear interpolation in log q (clamped to the grid)."""
+    def _weights(self, q: float) -> tuple[int, float]:
+        """(j, t): q lies at t between grid members j and j + 1 in log q (clamped)."""
         lq = self.log_q_grid
         # scalar clamps (the same values as np.clip, a third of its per-call cost)
         x = min(max(np.log(q), lq[0]), lq[-1])
         j = min(max(int(np.searchsorted(lq, x)) - 1, 0), len(lq) - 2)
-        t = (x - lq[j]) / (lq[j + 1] - lq[j])
+        return j, (x - lq[j]) / (lq[j + 1] - lq[j])
+
+    def g_at(self, q: float) -> np.ndarray:
+        """G(q)(f) by linear interpolation in log q (clamped to the grid)."""
+        j, t = self._weights(q)
         return (1 - t) * self.g_q[j] + t * self.g_q[j + 1]
+
+    def alias_at(self, q: float) -> np.ndarray | None:
+        """G_k(q)(f) of every alias cell, (n_cells, n_f), interpolated as :meth:`g_at`;
+        None where no simulation near ``q`` holds content beyond the Nyquist."""
+        if self.alias_g is None:
+            return None
+        j, t = self._weights(q)
+        a, b = self.alias_g[:, j], self.alias_g[:, j + 1]
+        if not (a.any() or b.any()):
+            return None
+        return (1 - t) * a + t * b
 
 
 #: ``keep(fy, fx)`` → bool: the frequency bins (cycles/px) a transfer fit may use
@@ -113,7 +133,8 @@ def used_bins(fy: np.ndarray, fx: np.ndarray, f_max: float = 0.5,
 def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float],
                         real_grey: np.ndarray, *, origins: list[tuple[int, int]],
                         block_px: int, f_max: float = 0.5,
-                        keep: BinFilter | None = None) -> SpectralData:
+                        keep: BinFilter | None = None,
+                        pieces: AliasPieces | None = None) -> SpectralData:
     """Welch spectra of the real scene and the Q-grid simulations against the sharpest.
 
     Parameters
@@ -128,6 +149,10 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
     keep
         ``keep(fy, fx)``: which bins the fit may use (under JPEG, those where the JPEG's
         linearised transfer was measured); None: all.
+    pieces
+        Per member of ``q_grid``, the simulation's parts folded from each alias cell
+        (:func:`geosim.diagnose.alias_cells.alias_pieces`; None entries: none); their
+        transfers let a blur act before sampling (:func:`model_transfer`).
     """
     w = hann2d(block_px)
     n = len(origins)
@@ -151,9 +176,18 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
     t = sr0 / np.maximum(s00, 1e-30)
     coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
     var = (1.0 - coh) / (2.0 * n * coh) * np.abs(t) ** 2 + TRANSFER_FLOOR**2
+    alias_g = None
+    if pieces is not None and any(p is not None for p in pieces):
+        s00_safe = np.maximum(s00, 1e-30)
+        alias_g = np.zeros((len(ALIAS_CELLS), len(pieces), int(half.sum())), dtype=complex)
+        for j, piece in enumerate(pieces):
+            if piece is None:
+                continue
+            for i, c in enumerate(ALIAS_CELLS):
+                alias_g[i, j] = (np.sum(ffts(piece[c]) * np.conj(f0), axis=0) / s00_safe)[half]
     return SpectralData(fy=fy[half], fx=fx[half], t_real=t[half],
                         g_q=np.array([gi[half] for gi in g]), q_grid=np.asarray(q_grid, float),
-                        var=var[half], n_blocks=n, coherence=coh[half])
+                        var=var[half], n_blocks=n, coherence=coh[half], alias_g=alias_g)
 
 
 def _blur(name: str) -> BlurEffect:
@@ -165,16 +199,31 @@ def _blur(name: str) -> BlurEffect:
 
 def model_transfer(data: SpectralData, *, q: float, gain: float,
                    effects: dict[str, dict[str, float]]) -> np.ndarray:
-    """g · ∏ H_e(f) · G(q)(f) on the samples of ``data``."""
-    return gain * data.g_at(q) * _effects_transfer(data, effects)
+    """g · ∏ H_e(f) · G(q)(f) on the samples of ``data``; where the simulations hold
+    content beyond the Nyquist (``data.alias_g``), the blur acts before sampling:
+    g · [G(q)(f) H(f) + Σ_k G_k(q)(f) (H(f + k) − H(f))] (:mod:`geosim.diagnose.alias_cells`)."""
+    # the blurs that act on the ground, and what acts on the sampled image (resampling)
+    ground = {n: p for n, p in effects.items() if n not in NON_LSI}
+    later = {n: p for n, p in effects.items() if n in NON_LSI}
+    h_ground = _effects_transfer(data, ground)
+    t = data.g_at(q) * h_ground
+    # under a resampling the scene was sampled on the native grid, whose alias cells are
+    # not the product's: no cell correction (the delivered render samples it natively)
+    gk = data.alias_at(q) if ground and not later else None
+    if gk is not None:
+        for i, (ky, kx) in enumerate(ALIAS_CELLS):
+            t = t + gk[i] * (_effects_transfer(data, ground, (ky, kx)) - h_ground)
+    return gain * t * _effects_transfer(data, later)
 
 
-def _effects_transfer(data: SpectralData, effects: dict[str, dict[str, float]]
-                      ) -> np.ndarray | float:
-    """∏ H_e(f) of ``effects`` on the samples of ``data`` (1.0 for none)."""
+def _effects_transfer(data: SpectralData, effects: dict[str, dict[str, float]],
+                      cell: tuple[int, int] = (0, 0)) -> np.ndarray | float:
+    """∏ H_e(f + k) of ``effects`` on the samples of ``data`` (1.0 for none); ``cell``:
+    k, whole cycles per pixel (an alias cell)."""
+    fy, fx = data.fy + cell[0], data.fx + cell[1]
     h: np.ndarray | float = 1.0
     for name, p in effects.items():
-        h = h * _blur(name).transfer(data.fy, data.fx, **p)
+        h = h * _blur(name).transfer(fy, fx, **p)
     return h
 
 
@@ -226,9 +275,10 @@ def _unpack(x: np.ndarray, specs) -> tuple[float, float, dict[str, dict[str, flo
 
 
 def _residual(x, data: SpectralData, specs, wt: np.ndarray,
-              fixed: np.ndarray | float | None = None) -> np.ndarray:
+              fixed: np.ndarray | float | None = None,
+              fixed_effects: dict[str, dict[str, float]] | None = None) -> np.ndarray:
     q, gain, eff = _unpack(x, specs)
-    h = model_transfer(data, q=q, gain=gain, effects=eff)
+    h = model_transfer(data, q=q, gain=gain, effects={**eff, **(fixed_effects or {})})
     if fixed is not None:
         h = h * fixed
     d = (data.t_real - h) * wt
@@ -266,7 +316,10 @@ def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
         ``n_params``).
     """
     fixed = {n: dict(p) for n, p in (fixed or {}).items() if n not in effect_names}
-    h_fixed = _effects_transfer(data, fixed) if fixed else None
+    # held effects multiply the transfer once (fast), unless they act on aliased content
+    aliased = fixed and data.alias_g is not None
+    h_fixed = _effects_transfer(data, fixed) if fixed and not aliased else None
+    fixed_effects = fixed if aliased else None
     specs = _pack_specs(effect_names)
     qlo, qhi = float(data.q_grid[0]), float(data.q_grid[-1])
     lb = [np.log(qlo), 0.05] + [s[2] for s in specs]
@@ -288,7 +341,8 @@ def fit_transfer(data: SpectralData, effect_names: Sequence[str], *,
                        np.clip(gain0, 0.06, 4.9)] + list(st[1:]), dtype=float)
         x0 = np.clip(x0, np.array(lb) + 1e-9, np.array(ub) - 1e-9)
         try:
-            res = least_squares(_residual, x0, bounds=(lb, ub), args=(data, specs, wt, h_fixed),
+            res = least_squares(_residual, x0, bounds=(lb, ub),
+                                args=(data, specs, wt, h_fixed, fixed_effects),
                                 method="trf", x_scale="jac", max_nfev=200)
         except ValueError:
             continue

@@ -66,6 +66,8 @@ class QSimulator:
         self._native_low: tuple[object, tuple[np.ndarray, np.ndarray, np.ndarray]] | None \
             = None
         self._native_coef: tuple[object, np.ndarray] | None = None
+        self._alias: tuple[object, dict[tuple[int, int], tuple[QSimulator, QSimulator]]] | None \
+            = None
         if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
             self.uav = None
 
@@ -118,6 +120,30 @@ class QSimulator:
             self._variants.pop(next(iter(self._variants)))
         self._variants[ck] = out
         return out
+
+    def alias_simulators(self, shift_px: tuple[float, float] = (0.0, 0.0)
+                         ) -> dict[tuple[int, int], tuple[QSimulator, QSimulator]] | None:
+        """Per alias cell (:data:`geosim.diagnose.alias_cells.ALIAS_CELLS`), simulators of
+        the real and the imaginary part of the cell's share of the grey UAV image moved by
+        ``shift_px`` (satellite pixels, on the fine grid as :meth:`variant` moves it): their
+        paper model at Q is the part of the grey simulation that sampling folds from that
+        cell. ``None`` where :meth:`variant` gives none (no image kept, invalid pixels).
+        The last shift's are kept."""
+        from geosim.diagnose.alias_cells import cell_parts
+        from geosim.physics.radiometry import luma
+
+        if self.uav is None or (self.valid is not None and not np.all(self.valid)):
+            return None
+        key = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6))
+        if self._alias is not None and self._alias[0] == key:
+            return self._alias[1]
+        fine = self._moved_filtered(luma(np.asarray(self.uav, float)), shift_px, None)
+        sims = {c: tuple(QSimulator(part[np.newaxis].astype(np.float32), phi=self.phi,
+                                    q_min=self.q_min, keep_image=False)
+                         for part in (im.real, im.imag))
+                for c, im in cell_parts(fine, self.phi).items()}
+        self._alias = (key, sims)  # type: ignore[assignment]
+        return sims  # type: ignore[return-value]
 
     def _moved_filtered(self, img: np.ndarray, shift_px: tuple[float, float],
                         transfer: TransferFunction | None) -> np.ndarray:

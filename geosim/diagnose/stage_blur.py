@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
+from geosim.diagnose.alias_cells import ALIAS_Q_MAX, SPLIT_Q_MAX, AliasPieces, alias_pieces
 from geosim.diagnose.context import FitWindow
 from geosim.diagnose.exact_family import EXACT_FAMILIES, exact_duel
 from geosim.diagnose.fit import BinFilter, SpectralData, build_spectral_data
@@ -61,6 +62,9 @@ class SpectralSetup:
     #: ``folds`` were built so; the exact model tapers its renders, :func:`change_taper`);
     #: None: not tapered
     taper: np.ndarray | None = None
+    #: the simulations' parts folded from each alias cell (:func:`split_alias_cells`;
+    #: ``full`` and ``folds`` were built with them); None: not split
+    pieces: AliasPieces | None = None
 
     def tapered(self, img: np.ndarray) -> np.ndarray:
         """A grey image (rows, cols) as the fits see it: with the changed regions tapered
@@ -157,10 +161,12 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
                              "larger common extent")
     keep = jpeg.measured_at if jpeg is not None else None
     fit_sims = [apply_taper(s, taper) for s in sims_grey]
+    # blurs before sampling (alias cells) only without a taper: the pieces are not tapered
+    pieces = split_alias_cells(inp, model, q_grid) if taper is None else None
 
     def spectral_data(blocks: list[tuple[int, int]]) -> SpectralData:
         return build_spectral_data(fit_sims, q_grid, real_g, origins=blocks,
-                                   block_px=block_px, keep=keep)
+                                   block_px=block_px, keep=keep, pieces=pieces)
 
     full = spectral_data(origins)
     groups = quadrant_folds(origins, block_px, (rows, cols))
@@ -171,7 +177,7 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
             folds.append((spectral_data(train), spectral_data(g)))
     return SpectralSetup(q_grid=q_grid, sims_grey=sims_grey, origins=origins, block_px=block_px,
                          full=full, folds=folds, n_screened=len(rho) - len(origins), keep=keep,
-                         taper=taper)
+                         taper=taper, pieces=pieces)
 
 
 def change_taper(mask: np.ndarray, valid: np.ndarray,
@@ -196,6 +202,31 @@ def change_taper(mask: np.ndarray, valid: np.ndarray,
     return np.where(valid, w, 0.0)
 
 
+def split_alias_cells(inp: Inputs, model: ForwardModel, q_grid: np.ndarray
+                      ) -> AliasPieces | None:
+    """The Q-grid simulations' parts folded from each alias cell, made as the simulations
+    are (the registration's shift on the fine grid, or the sampled image moved), so that a
+    blur acts on them before sampling (:mod:`geosim.diagnose.alias_cells`).
+
+    None where the fits start at Q ≥ :data:`~geosim.diagnose.alias_cells.SPLIT_Q_MAX`,
+    the UAV image has invalid pixels, the simulator cannot split, or the model holds a
+    compression: through the JPEG's linearised transfer the pieces fitted the development
+    scenes worse than none (round 29: 5 of the 7 JPEG rows at Q < 1.8 whose fit changed,
+    e.g. spectral error 0.013 -> 0.061), so under JPEG the fits keep the sampled model."""
+    reg = model.registration
+    cells = getattr(inp.simulate, "alias_simulators", None)
+    if (q_grid[0] >= ALIAS_Q_MAX or model.q >= SPLIT_Q_MAX or not callable(cells)
+            or reg.fill_idx is not None or model.compression is not None):
+        return None
+    pre = reg.applied and reg.field_px is None and reg.presampled is not None
+    sims = cells(reg.shift_px if pre else (0.0, 0.0))
+    if sims is None:
+        return None
+    finish = (lambda img: reg.move(img)[0]) if reg.applied and not pre else None
+    return alias_pieces(sims, q_grid, q_min=float(getattr(inp.simulate, "q_min", 0.0)),
+                        finish=finish)
+
+
 def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
                       ) -> BlurSelection:
     """Choose the anisotropic, then the isotropic blur by the exact (window-aware) model
@@ -211,5 +242,5 @@ def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
     for family in EXACT_FAMILIES:
         sel = exact_duel(setup.tapered(inp.grey), setup.sims_grey, setup.q_grid, setup.full,
                          setup.origins, groups, setup.block_px, sel, family, inp.q_base, setup.keep,
-                         taper=setup.taper)
+                         taper=setup.taper, pieces=setup.pieces)
     return sel
