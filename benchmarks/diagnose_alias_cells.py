@@ -14,8 +14,9 @@ which is exact for any shift-invariant blur and equal to today's model above Q =
 only k = 0 holds content. This script measures both models on scenes the benchmark's
 independent generator renders (real ground, a detector box or an atmosphere, whole DN, no
 other effect): the χ² gain of the blur over Q alone, and the fitted Q and blur parameter,
-against the truth. It is not wired into ``geosim diagnose`` (see docs/diagnosis.md,
-round 21).
+against the truth. Round 21's prototype; since round 29 the same model is in the
+diagnosis (``geosim.diagnose.alias_cells``, whose cell split this script now uses; see
+docs/diagnosis.md, rounds 21 and 29).
 
 Run: python benchmarks/diagnose_alias_cells.py   (writes
 benchmarks/results/diagnose_alias_cells.json, prints a markdown table; ~1 min)
@@ -31,7 +32,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.fft
 from scipy.optimize import least_squares
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,6 +40,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_generator as gen  # noqa: E402
 
+from geosim.diagnose.alias_cells import ALIAS_CELLS, cell_parts  # noqa: E402
 from geosim.diagnose.fit import SpectralData, build_spectral_data, used_bins  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.diagnose.spectra import block_origins, hann2d  # noqa: E402
@@ -47,7 +48,7 @@ from geosim.physics.otf import atmospheric_otf, detector_otf  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "diagnose_alias_cells.json"
 #: the alias cells besides k = 0 (content beyond 1.5 cycles/px, Q < 0.67, joins |k| = 1)
-CELLS = [(ky, kx) for ky in (-1, 0, 1) for kx in (-1, 0, 1) if (ky, kx) != (0, 0)]
+CELLS = list(ALIAS_CELLS)
 Q_GRID = np.exp(np.linspace(np.log(0.7), np.log(2.8), 14))
 BLOCK_PX = 32
 #: (development case whose ground is used, true Q, effect, parameter): every source kind
@@ -70,17 +71,6 @@ def transfer(effect: str, value: float) -> Callable[[np.ndarray, np.ndarray], np
     return lambda fy, fx: atmospheric_otf(fy, fx, f0_cyc_per_px=value)
 
 
-def cell_images(fine: np.ndarray, phi: int) -> dict[tuple[int, int], np.ndarray]:
-    """The fine image's part in each alias cell (complex; reflect-padded periodic FFT)."""
-    pad = max(16, fine.shape[0] // 8)
-    p = np.pad(fine, pad, mode="reflect")
-    spec = scipy.fft.fft2(p)
-    ky = np.clip(np.round(np.fft.fftfreq(p.shape[0]) * phi), -1, 1)[:, None]
-    kx = np.clip(np.round(np.fft.fftfreq(p.shape[1]) * phi), -1, 1)[None, :]
-    return {c: scipy.fft.ifft2(spec * ((ky == c[0]) & (kx == c[1])))[pad:-pad, pad:-pad]
-            for c in CELLS}
-
-
 def alias_transfers(uav_grey: np.ndarray, data: SpectralData, origins: list[tuple[int, int]],
                     f0: np.ndarray, s00: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
     """G_k(Q)(f) on the bins of ``data``: Welch transfer of each cell's piece (real and
@@ -96,7 +86,7 @@ def alias_transfers(uav_grey: np.ndarray, data: SpectralData, origins: list[tupl
                          (img[r:r + BLOCK_PX, c:c + BLOCK_PX] for r, c in origins)])
 
     out = {}
-    for c, im in cell_images(uav_grey, gen.PHI).items():
+    for c, im in cell_parts(uav_grey, gen.PHI).items():
         re = QSimulator(im.real[None].astype(np.float32), phi=gen.PHI, q_min=0.6)
         imag = QSimulator(im.imag[None].astype(np.float32), phi=gen.PHI, q_min=0.6)
         out[c] = np.array([(np.sum(ffts(re(q)[0] + 1j * imag(q)[0]) * np.conj(f0), axis=0)

@@ -85,21 +85,18 @@ class ExactSimulations:
         spec = (1.0 - t) * self.spectra[j] + t * self.spectra[j + 1]
         spec = spec * _transfer(effects, self.fy, self.fx)
         img = scipy.fft.irfft2(spec, s=self.shape)
-        if self.alias is not None and effects and (self.alias[j] is not None
-                                                   or self.alias[j + 1] is not None):
-            # blurs act before sampling: each alias cell's part by H(f + k), not H(f)
-            zero = 0.0
-            a = (1.0 - t) * (self.alias[j] if self.alias[j] is not None else zero) \
-                + t * (self.alias[j + 1] if self.alias[j + 1] is not None else zero)
-            # only the blurs that act on the ground (a resampling acts after sampling)
-            ground = {n: p for n, p in effects.items() if n not in NON_LSI}
-            later = {n: p for n, p in effects.items() if n in NON_LSI}
-            if ground and not later:  # native sampling under a resampling (fit.py)
-                fy, fx = self.fy_full, self.fx_full
-                h0 = _transfer(ground, fy, fx)
-                corr = sum(a[i] * (_transfer(ground, fy + ky, fx + kx) - h0)
-                           for i, (ky, kx) in enumerate(ALIAS_CELLS))
-                img = img + np.real(scipy.fft.ifft2(corr * _transfer(later, fy, fx)))
+        # blurs act before sampling: each alias cell's part by H(f + k), not H(f); not
+        # under a resampling (sampled on its native grid: fit.model_transfer)
+        near = [] if self.alias is None else [self.alias[j], self.alias[j + 1]]
+        if effects and any(a is not None for a in near) \
+                and not any(n in NON_LSI for n in effects):
+            a = sum(w * pc for w, pc in zip((1.0 - t, t), near, strict=True)
+                    if pc is not None)
+            fy, fx = self.fy_full, self.fx_full
+            h0 = _transfer(effects, fy, fx)
+            corr = sum(a[i] * (_transfer(effects, fy + ky, fx + kx) - h0)
+                       for i, (ky, kx) in enumerate(ALIAS_CELLS))
+            img = img + np.real(scipy.fft.ifft2(corr))
         return apply_taper(img[self.pad:self.pad + self.rows, self.pad:self.pad + self.cols],
                            self.taper)
 

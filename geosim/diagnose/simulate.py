@@ -16,11 +16,13 @@ from geosim.degrade.core import (
     degrade_array,
     optics_otf_below_cutoff,
 )
+from geosim.diagnose.alias_cells import cell_parts
 from geosim.physics import otf
 from geosim.physics.cubic import OPENCV_A
 from geosim.physics.geometry import fourier_shift
 from geosim.physics.native_grid import native_area_dct, native_to_product
 from geosim.physics.otf import TransferFunction
+from geosim.physics.radiometry import luma
 
 __all__ = ["paper_model", "QSimulator", "VARIANT_CACHE"]
 
@@ -129,9 +131,6 @@ class QSimulator:
         paper model at Q is the part of the grey simulation that sampling folds from that
         cell. ``None`` where :meth:`variant` gives none (no image kept, invalid pixels).
         The last shift's are kept."""
-        from geosim.diagnose.alias_cells import cell_parts
-        from geosim.physics.radiometry import luma
-
         if self.uav is None or (self.valid is not None and not np.all(self.valid)):
             return None
         key = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6))
