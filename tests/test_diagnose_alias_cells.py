@@ -21,6 +21,8 @@ from geosim.diagnose.alias_cells import alias_pieces, cell_parts  # noqa: E402
 from geosim.diagnose.exact import ExactSimulations  # noqa: E402
 from geosim.diagnose.fit import build_spectral_data, fit_transfer  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
+from geosim.diagnose.spectra import apply_taper  # noqa: E402
+from geosim.diagnose.stage_blur import change_taper, taper_pieces  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
 
 
@@ -100,9 +102,21 @@ def test_exact_render_with_alias_pieces_matches_a_blur_before_sampling(effect, p
     assert err_cells < 0.05 * truth.std()
 
 
-def test_transfer_fit_with_alias_pieces_finds_a_low_q_box():
+def _changed_taper(n: int) -> np.ndarray:
+    """A change taper over scattered discs (moved cattle) on an n × n product grid."""
+    yy, xx = np.mgrid[:n, :n]
+    mask = np.ones((n, n), bool)
+    for r, c in ((20, 30), (70, 90), (100, 25), (45, 110), (95, 60)):
+        mask &= np.hypot(yy - r, xx - c) > 7
+    return change_taper(mask, np.ones((n, n), bool))
+
+
+@pytest.mark.parametrize("tapered", [False, True])
+def test_transfer_fit_with_alias_pieces_finds_a_low_q_box(tapered):
     # the real scene: a 1.5 px box on the fine grid at Q 0.85 (scipy, as above); the fit
-    # with the pieces recovers pitch and Q, the product-grid fit lets Q absorb the box
+    # with the pieces recovers pitch and Q, the product-grid fit lets Q absorb the box.
+    # Tapered: changed regions tapered out of the scene and the simulations alike (as
+    # spectral_setup does), the pieces with them (taper_pieces)
     phi, q = 10, 0.85
     uav = _texture(1280, 7)
     sim = QSimulator(uav, phi=phi, q_min=0.6)
@@ -111,6 +125,16 @@ def test_transfer_fit_with_alias_pieces_finds_a_low_q_box():
     q_grid = list(np.exp(np.linspace(np.log(0.7), np.log(2.6), 8)))
     sims = [luma(sim(g)) for g in q_grid]
     pieces = alias_pieces(sim.alias_simulators(), q_grid, q_min=0.6)
+    if tapered:
+        taper = _changed_taper(128)
+        real, sims = apply_taper(real, taper), [apply_taper(s, taper) for s in sims]
+        tapered_pieces = taper_pieces(pieces, taper)
+        # the taper is linear: the tapered pieces sum to the tapered sum of the pieces,
+        # so with the tapered k = 0 part they still make the tapered simulation
+        both = sum(pieces[1].values())
+        assert np.allclose(sum(tapered_pieces[1].values()),
+                           apply_taper(both.real, taper) + 1j * apply_taper(both.imag, taper))
+        pieces = tapered_pieces
     origins = [(r, c) for r in range(0, 128 - 32 + 1, 16) for c in range(0, 128 - 32 + 1, 16)]
     fits = {}
     for name, pc in (("cells", pieces), ("product", None)):

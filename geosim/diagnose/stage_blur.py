@@ -62,8 +62,8 @@ class SpectralSetup:
     #: ``folds`` were built so; the exact model tapers its renders, :func:`change_taper`);
     #: None: not tapered
     taper: np.ndarray | None = None
-    #: the simulations' parts folded from each alias cell (:func:`split_alias_cells`;
-    #: ``full`` and ``folds`` were built with them); None: not split
+    #: the simulations' parts folded from each alias cell (:func:`split_alias_cells`, not
+    #: tapered; ``full`` and ``folds`` were built with them tapered); None: not split
     pieces: AliasPieces | None = None
 
     def tapered(self, img: np.ndarray) -> np.ndarray:
@@ -161,12 +161,14 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
                              "larger common extent")
     keep = jpeg.measured_at if jpeg is not None else None
     fit_sims = [apply_taper(s, taper) for s in sims_grey]
-    # blurs before sampling (alias cells) only without a taper: the pieces are not tapered
-    pieces = split_alias_cells(inp, model, q_grid) if taper is None else None
+    # blurs before sampling (alias cells); the fits see the pieces tapered as the
+    # simulations (the taper is linear), the exact model tapers its renders itself
+    pieces = split_alias_cells(inp, model, q_grid)
+    fit_pieces = taper_pieces(pieces, taper)
 
     def spectral_data(blocks: list[tuple[int, int]]) -> SpectralData:
         return build_spectral_data(fit_sims, q_grid, real_g, origins=blocks,
-                                   block_px=block_px, keep=keep, pieces=pieces)
+                                   block_px=block_px, keep=keep, pieces=fit_pieces)
 
     full = spectral_data(origins)
     groups = quadrant_folds(origins, block_px, (rows, cols))
@@ -225,6 +227,18 @@ def split_alias_cells(inp: Inputs, model: ForwardModel, q_grid: np.ndarray
     finish = (lambda img: reg.move(img)[0]) if reg.applied and not pre else None
     return alias_pieces(sims, q_grid, q_min=float(getattr(inp.simulate, "q_min", 0.0)),
                         finish=finish)
+
+
+def taper_pieces(pieces: AliasPieces | None, taper: np.ndarray | None
+                 ) -> AliasPieces | None:
+    """The alias pieces as the fits see the simulations: each real and imaginary part
+    tapered by :func:`~geosim.diagnose.spectra.apply_taper` (linear in the image, so the
+    tapered pieces sum to the tapered simulation); unchanged without a taper."""
+    if pieces is None or taper is None:
+        return pieces
+    return [None if pc is None else
+            {c: apply_taper(a.real, taper) + 1j * apply_taper(a.imag, taper)
+             for c, a in pc.items()} for pc in pieces]
 
 
 def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
