@@ -17,6 +17,12 @@ k = 0 part sum to the simulation). The fits then model
 
 exact for any shift-invariant blur, and the same as without pieces at Q ≥ 2 (no content
 beyond the Nyquist) — where none are made.
+
+Where the diagnosis uses them (:func:`geosim.diagnose.stage_blur.split_alias_cells`): fits
+that start below :data:`SPLIT_Q_MAX`, a fully valid UAV image, no JPEG in the model;
+tapered as the simulations under a change taper. A model holding a resampling gets no cell
+correction (:func:`geosim.diagnose.fit.model_transfer`): that scene was sampled on its
+native grid, whose alias cells are not the product's.
 """
 
 from __future__ import annotations
