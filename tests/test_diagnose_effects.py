@@ -257,3 +257,22 @@ def test_q_grid_interpolation_is_linear_in_log_q_and_clamped():
                          + 1j * np.interp(np.log(q), np.log(grid), g_q[:, k].imag)
                          for k in range(40)])
         np.testing.assert_allclose(data.g_at(q), want, rtol=1e-12, atol=1e-12)
+
+
+def test_gains_below_one_with_sub_dn_offsets_are_a_colour_response(sim):
+    """Per-band gains below 1 with offsets of a fraction of a DN (development c263, c937:
+    colour responses claimed as haze with path radiance 0.1-0.5 DN) are a colour response:
+    haze is told from it by its path radiance, which must be clearly away from 0 (≥ 2 DN in
+    some band); with 3-8 DN of path radiance the same gains are haze."""
+    clean = sim(Q_TRUE)
+    mask = np.ones(clean.shape[-2:], bool)
+    gains = np.array([0.91, 0.94, 0.95])[:, None, None]
+    for offsets in ([0.2, 0.2, 0.1], [0.0, 0.0, 0.0]):
+        real = clean * gains + np.array(offsets)[:, None, None]
+        out = select_radiometry(fit_radiometry(clean, real, mask))
+        assert out.name == "colour_response", offsets
+        assert [a["name"] for a in out.alternatives] != ["haze"]
+    hazy = clean * gains + np.array([3.0, 5.0, 8.0])[:, None, None]
+    out = select_radiometry(fit_radiometry(clean, hazy, mask))
+    assert out.name == "haze"
+    np.testing.assert_allclose(out.params["path_radiance_dn"], [3.0, 5.0, 8.0], atol=1.0)

@@ -284,8 +284,9 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> Radiometr
 
     BIC on the image-domain residuals with n/corr_px2 independent samples:
     identity (0 parameters), per-band gain (3), per-band gain and offset (6). The
-    affine model is called ``haze`` when the offsets are positive and gains ≤ HAZE_MAX_GAIN
-    (path radiance, contrast loss); otherwise it is a ``colour_response`` with an
+    affine model is called ``haze`` when the offsets are positive, some band's is at least
+    RADIOMETRIC_MIN_OFFSET_DN (path radiance measured, its effect size; since round 31) and
+    gains ≤ HAZE_MAX_GAIN (contrast loss); otherwise it is a ``colour_response`` with an
     offset. A name is claimed only when its parameters are clearly away from the null
     (effect size: a gain ≥ 3 % from 1, or an offset ≥ 2 DN; round 5).
 
@@ -322,8 +323,14 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> Radiometr
     b_g = bic(rad.rss_gain_only, bands)
     b_a = bic(rad.rss_affine, 2 * bands)
     bics = {"identity": b_id, "gain": b_g, "affine": b_a}
+    # haze is told from a colour response by its path radiance alone: the affine fit is
+    # haze only where that is clearly away from its null (RADIOMETRIC_MIN_OFFSET_DN in
+    # some band); gains below 1 with offsets of a fraction of a DN are a colour response
+    # (development c263, c937: per-band gains 0.82-0.95 claimed as haze with path
+    # radiance 0.1-0.5 DN; a haze adds several DN, 7.8-15 on the sample site)
     haze_like = bool(np.all(rad.offset_dn > -2 * rad.offset_sigma)
-                     and np.mean(rad.offset_dn) > 0 and np.all(rad.gain <= HAZE_MAX_GAIN))
+                     and np.mean(rad.offset_dn) > 0 and np.all(rad.gain <= HAZE_MAX_GAIN)
+                     and float(np.max(rad.offset_dn)) >= RADIOMETRIC_MIN_OFFSET_DN)
     # each model on its own: better than the identity by MIN_DELTA_BIC, a material change
     # of the image, and its name's effect size
     ok_g = bool(b_id - b_g >= MIN_DELTA_BIC
