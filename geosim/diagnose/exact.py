@@ -29,12 +29,13 @@ import scipy.fft
 from scipy.optimize import least_squares
 
 from geosim.diagnose.alias_cells import ALIAS_CELLS, AliasPieces
-from geosim.diagnose.effects import NON_LSI, BlurEffect, get_effect
+from geosim.diagnose.effects import NON_LSI, get_effect
 from geosim.diagnose.fit import (
     HANN_CORRELATION,
     TRANSFER_FLOOR,
     BinFilter,
     TransferFit,
+    blur_transfer,
     used_bins,
 )
 from geosim.diagnose.spectra import apply_taper, hann2d
@@ -83,7 +84,7 @@ class ExactSimulations:
         j = int(np.clip(np.searchsorted(lq, x) - 1, 0, len(lq) - 2))
         t = (x - lq[j]) / (lq[j + 1] - lq[j])
         spec = (1.0 - t) * self.spectra[j] + t * self.spectra[j + 1]
-        spec = spec * _transfer(effects, self.fy, self.fx)
+        spec = spec * blur_transfer(effects, self.fy, self.fx)
         img = scipy.fft.irfft2(spec, s=self.shape)
         # blurs act before sampling: each alias cell's part by H(f + k), not H(f); not
         # under a resampling (sampled on its native grid: fit.model_transfer)
@@ -93,24 +94,12 @@ class ExactSimulations:
             a = sum(w * pc for w, pc in zip((1.0 - t, t), near, strict=True)
                     if pc is not None)
             fy, fx = self.fy_full, self.fx_full
-            h0 = _transfer(effects, fy, fx)
-            corr = sum(a[i] * (_transfer(effects, fy + ky, fx + kx) - h0)
+            h0 = blur_transfer(effects, fy, fx)
+            corr = sum(a[i] * (blur_transfer(effects, fy + ky, fx + kx) - h0)
                        for i, (ky, kx) in enumerate(ALIAS_CELLS))
             img = img + np.real(scipy.fft.ifft2(corr))
         return apply_taper(img[self.pad:self.pad + self.rows, self.pad:self.pad + self.cols],
                            self.taper)
-
-
-def _transfer(effects: dict[str, dict[str, float]], fy: np.ndarray, fx: np.ndarray
-              ) -> np.ndarray | float:
-    """∏ H_e(fy, fx) of the blur ``effects`` (1.0 for none)."""
-    h: np.ndarray | float = 1.0
-    for name, params in effects.items():
-        eff = get_effect(name)
-        if not isinstance(eff, BlurEffect):
-            raise ValueError(f"{name} is not a blur effect")
-        h = h * eff.transfer(fy, fx, **params)
-    return h
 
 
 @dataclass

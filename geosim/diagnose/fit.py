@@ -39,7 +39,7 @@ from geosim.diagnose.spectra import hann2d
 
 __all__ = [
     "SpectralData", "TransferFit", "build_spectral_data", "fit_transfer", "model_transfer",
-    "evaluate_chi2", "fit_radiometry", "fit_noise", "NoiseFit", "RadiometryFit",
+    "blur_transfer", "evaluate_chi2", "fit_radiometry", "fit_noise", "NoiseFit", "RadiometryFit",
     "HANN_CORRELATION", "BinFilter", "used_bins",
 ]
 
@@ -105,16 +105,23 @@ class SpectralData:
         j, t = self._weights(q)
         return (1 - t) * self.g_q[j] + t * self.g_q[j + 1]
 
+    @cached_property
+    def _alias_held(self) -> np.ndarray:
+        """Per member of ``q_grid``: whether its alias parts hold anything (computed once:
+        :meth:`alias_at` runs in every residual of a fit)."""
+        if self.alias_g is None:
+            return np.zeros(len(self.q_grid), bool)
+        return self.alias_g.any(axis=(0, 2))
+
     def alias_at(self, q: float) -> np.ndarray | None:
         """G_k(q)(f) of every alias cell, (n_cells, n_f), interpolated as :meth:`g_at`;
         None where no simulation near ``q`` holds content beyond the Nyquist."""
         if self.alias_g is None:
             return None
         j, t = self._weights(q)
-        a, b = self.alias_g[:, j], self.alias_g[:, j + 1]
-        if not (a.any() or b.any()):
+        if not (self._alias_held[j] or self._alias_held[j + 1]):
             return None
-        return (1 - t) * a + t * b
+        return (1 - t) * self.alias_g[:, j] + t * self.alias_g[:, j + 1]
 
 
 #: ``keep(fy, fx)`` → bool: the frequency bins (cycles/px) a transfer fit may use
@@ -216,15 +223,21 @@ def model_transfer(data: SpectralData, *, q: float, gain: float,
     return gain * t * _effects_transfer(data, later)
 
 
-def _effects_transfer(data: SpectralData, effects: dict[str, dict[str, float]],
-                      cell: tuple[int, int] = (0, 0)) -> np.ndarray | float:
-    """∏ H_e(f + k) of ``effects`` on the samples of ``data`` (1.0 for none); ``cell``:
-    k, whole cycles per pixel (an alias cell)."""
-    fy, fx = data.fy + cell[0], data.fx + cell[1]
+def blur_transfer(effects: dict[str, dict[str, float]], fy: np.ndarray, fx: np.ndarray
+                  ) -> np.ndarray | float:
+    """∏ H_e(fy, fx) of the blur ``effects`` (cycles/px; 1.0 for none); ValueError for an
+    effect that is not a blur."""
     h: np.ndarray | float = 1.0
     for name, p in effects.items():
         h = h * _blur(name).transfer(fy, fx, **p)
     return h
+
+
+def _effects_transfer(data: SpectralData, effects: dict[str, dict[str, float]],
+                      cell: tuple[int, int] = (0, 0)) -> np.ndarray | float:
+    """∏ H_e(f + k) of ``effects`` on the samples of ``data`` (1.0 for none); ``cell``:
+    k, whole cycles per pixel (an alias cell)."""
+    return blur_transfer(effects, data.fy + cell[0], data.fx + cell[1])
 
 
 @dataclass

@@ -265,13 +265,6 @@ def _colour_size(gain: np.ndarray, offset_dn: np.ndarray | None = None) -> bool:
                 or big_offset)
 
 
-def _haze_size(transmission: np.ndarray, path_dn: np.ndarray) -> bool:
-    """Effect-size rule of ``haze``: some band's transmission ≥ COLOUR_MIN_GAIN_DEV below 1
-    or its path radiance ≥ RADIOMETRIC_MIN_OFFSET_DN."""
-    return bool(1.0 - float(np.min(transmission)) >= COLOUR_MIN_GAIN_DEV
-                or float(np.max(path_dn)) >= RADIOMETRIC_MIN_OFFSET_DN)
-
-
 def _offsets_significant(rad: RadiometryFit) -> bool:
     """Haze's own trace: path radiance, offsets positive in every band and jointly
     HAZE_OFFSET_Z standard errors above zero (one-sided mean of the per-band z)."""
@@ -338,8 +331,9 @@ def select_radiometry(rad: RadiometryFit, *, corr_px2: float = 4.0) -> Radiometr
                 >= MIN_RADIOMETRIC_DN and _colour_size(rad.gain_only))
     ok_a = bool(b_id - b_a >= MIN_DELTA_BIC
                 and np.max(rad.correction_rms(rad.gain, rad.offset_dn)) >= MIN_RADIOMETRIC_DN
-                and (_haze_size(rad.gain, rad.offset_dn) if haze_like
-                     else _colour_size(rad.gain, rad.offset_dn)))
+                # haze's effect size (path radiance ≥ RADIOMETRIC_MIN_OFFSET_DN) is part
+                # of haze_like; a colour response with an offset has its own
+                and (haze_like or _colour_size(rad.gain, rad.offset_dn)))
     # the affine fit is haze (transmission, path radiance) or a colour response with an
     # offset (gain, offset): the same numbers under the name's own parameter names
     name_a, gain_key, offset_key = (("haze", "transmission", "path_radiance_dn") if haze_like
