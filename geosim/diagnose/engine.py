@@ -56,6 +56,7 @@ from geosim.diagnose.stage_claims import claim_effects
 from geosim.diagnose.stage_inputs import Inputs, grey, make_inputs
 from geosim.diagnose.stage_isotropic_pixels import pixel_isotropic
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
+from geosim.diagnose.stage_jpeg_blur import censored_blur
 from geosim.diagnose.stage_jpeg_refit import (
     delivered_q,
     dithered_refit,
@@ -222,6 +223,8 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model = coherent_resampling(inp, model, sel, setup, ev, window.candidates)
     # beside a resampling, an isotropic roll-off by its trace in the pixels
     model = pixel_isotropic(inp, model, sel, setup, ev, window.candidates)
+    # under JPEG, a blur by the scene's quantisation intervals, where the transfer cannot
+    model = censored_blur(inp, model, sel, setup, window, ev)
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     model, withdrawn_alias = jpeg_resampling_beyond_optics(inp, model, sel, setup)
     found = model
