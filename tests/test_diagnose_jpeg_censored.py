@@ -121,3 +121,15 @@ def test_jpeg_alone_at_high_q_claims_no_blur_through_the_intervals():
     claimed, se_base, se_ref, _ = _diagnose({"compression": {"quality": 45}}, q=3.0, seed=22)
     assert set(claimed) == {"compression"}, list(claimed)
     assert se_ref <= se_base
+
+
+def test_resampling_under_jpeg_named_through_the_intervals():
+    # without the censored test Q took this resampling up (compression alone, Q 1.72 for
+    # 1.05); through the intervals the native grid's aperture and aliasing are told from a
+    # detector box or an atmosphere, which are listed as alternatives
+    truth = {"resampling": {"native_pitch_px": 1.7}, "compression": {"quality": 50}}
+    claimed, se_base, se_ref, d = _diagnose(truth, q=1.05, seed=25)
+    assert set(claimed) == {"compression", "resampling"}, list(claimed)
+    assert abs(claimed["resampling"]["params"]["native_pitch_px"] - 1.7) < 0.1
+    assert abs(d.summary["refined"]["q"] - 1.05) < 0.1, d.summary["refined"]["q"]
+    assert se_ref <= 0.5 * se_base, (se_base, se_ref)

@@ -19,7 +19,8 @@ cross-validation folds, forward blur selection) →
 :mod:`~geosim.diagnose.stage_aliasing`, :mod:`~geosim.diagnose.stage_resampling_coherent`
 (under noise, a resampling by its aliasing in the pixels),
 :mod:`~geosim.diagnose.stage_isotropic_pixels` (beside a resampling, an isotropic blur by
-its trace in the pixels) and
+its trace in the pixels), :mod:`~geosim.diagnose.stage_jpeg_blur` (under JPEG, a blur by the
+scene's quantisation intervals) and
 :mod:`~geosim.diagnose.stage_withdraw` (checks on the delivered spectrum; the refined
 simulation may not fit worse than the baseline) →
 :func:`~geosim.diagnose.stage_claims.claim_effects` →
