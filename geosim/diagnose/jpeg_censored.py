@@ -11,8 +11,8 @@ only through a linearised transfer measured where the JPEG passes signal
 smear at quality 53 untestable (development c14; Q took it up, 2.97 → 3.23).
 
 :func:`log_likelihood` is the exact interval-censored likelihood of the scene's indices
-given a model's pre-JPEG luma coefficients μ: P(j | μ) = Φ((j + ½) t − μ)/s) −
-Φ((j − ½) t − μ)/s), with s² = σ² + the codec's arithmetic variance; σ² (noise and model
+given a model's pre-JPEG luma coefficients μ: P(j | μ) = Φ(((j + ½) t − μ)/s) −
+Φ(((j − ½) t − μ)/s), with s² = σ² + the codec's arithmetic variance; σ² (noise and model
 misfit, luma DN²) is profiled over a grid, and a small uniform outlier part keeps one
 misfit coefficient from deciding (as :mod:`geosim.diagnose.jpeg_noise`, whose noise
 estimate is the same likelihood with a gain per coefficient). Coefficients with step 1
@@ -77,6 +77,7 @@ class CensoredBlocks:
 
     @property
     def n_blocks(self) -> int:
+        """Number of 8×8 blocks read."""
         return int(self.index.shape[0])
 
     def model_coefficients(self, model_grey: np.ndarray) -> np.ndarray:
