@@ -133,3 +133,48 @@ def test_resampling_under_jpeg_named_through_the_intervals():
     assert abs(claimed["resampling"]["params"]["native_pitch_px"] - 1.7) < 0.1
     assert abs(d.summary["refined"]["q"] - 1.05) < 0.1, d.summary["refined"]["q"]
     assert se_ref <= 0.5 * se_base, (se_base, se_ref)
+
+
+def _resampling_model(truth: dict, q: float, seed: int, pitch: float):
+    """(inputs, a model holding a JPEG and a resampling of ``pitch``, window, ev) of a
+    generator scene (synthetic ground, 96 px)."""
+    from geosim.diagnose.context import EvalContext, FitWindow
+    from geosim.diagnose.effects import BLUR_EFFECTS
+    from geosim.diagnose.model import CompressionFit, ForwardModel
+    from geosim.diagnose.spectra import block_origins
+    from geosim.diagnose.stage_inputs import make_inputs
+    from geosim.diagnose.stage_register import coregister
+
+    rng = np.random.default_rng(seed)
+    ground = gen.synthetic_ground(rng, (96 + 24) * gen.PHI)
+    uav, real = gen.render(ground, q, truth, rng, margin_px=12)
+    inp = make_inputs(real, QSimulator(uav, phi=gen.PHI, q_min=0.6), q, None, None, True, 0.5)
+    # the generator JPEGs the scene with its 12 px margin: blocks at 12 mod 16
+    model = ForwardModel(q=q, blur={"resampling": {"native_pitch_px": pitch}},
+                         registration=coregister(inp),
+                         compression=CompressionFit(truth["compression"]["quality"], (12, 12),
+                                                    {}))
+    valid = np.ones(real.shape[-2:], bool)
+    window = FitWindow(mask=valid, q_lo=0.7, q_hi=max(2.5, 1.3 * q), candidates=BLUR_EFFECTS,
+                       q_starts=(q, 1.5))
+    ev = EvalContext(mask=valid, origins=block_origins(valid.shape, block_px=32), block_px=32,
+                     real_grey=inp.grey, noise_seed=0)
+    return inp, model, window, ev
+
+
+def test_resampling_under_jpeg_at_high_q_kept_only_where_the_intervals_want_it():
+    from geosim.diagnose.stage_jpeg_blur import censored_resampling_check
+
+    # a JPEG alone at Q 3.4, with a (false) 1.6 px resampling in the model: withdrawn, Q
+    # fitted without it near the truth
+    jpeg = {"compression": {"quality": 55}}
+    inp, model, window, ev = _resampling_model(jpeg, 3.4, 31, 1.6)
+    out, withdrawn = censored_resampling_check(inp, model, window, ev)
+    assert [w["name"] for w in withdrawn] == ["resampling"] and out.blur == {}
+    assert abs(out.q - 3.4) < 0.3, out.q
+    # a true 1.5 px resampling under the same JPEG at Q 2.7 (the optics still pass some of
+    # what its native grid aliases): kept
+    truth = {"resampling": {"native_pitch_px": 1.5}, **jpeg}
+    inp, model, window, ev = _resampling_model(truth, 2.7, 32, 1.5)
+    out, withdrawn = censored_resampling_check(inp, model, window, ev)
+    assert withdrawn == [] and out is model

@@ -19,8 +19,8 @@ cross-validation folds, forward blur selection) →
 :mod:`~geosim.diagnose.stage_aliasing`, :mod:`~geosim.diagnose.stage_resampling_coherent`
 (under noise, a resampling by its aliasing in the pixels),
 :mod:`~geosim.diagnose.stage_isotropic_pixels` (beside a resampling, an isotropic blur by
-its trace in the pixels), :mod:`~geosim.diagnose.stage_jpeg_blur` (under JPEG, a blur by the
-scene's quantisation intervals) and
+its trace in the pixels), :mod:`~geosim.diagnose.stage_jpeg_blur` (under JPEG, a
+resampling at high Q checked on the scene's quantisation intervals, then a blur by them) and
 :mod:`~geosim.diagnose.stage_withdraw` (checks on the delivered spectrum; the refined
 simulation may not fit worse than the baseline) →
 :func:`~geosim.diagnose.stage_claims.claim_effects` →
@@ -34,7 +34,7 @@ smaller and the refined simulation is worse there (:func:`~geosim.diagnose.conte
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -57,7 +57,7 @@ from geosim.diagnose.stage_claims import claim_effects
 from geosim.diagnose.stage_inputs import Inputs, grey, make_inputs
 from geosim.diagnose.stage_isotropic_pixels import pixel_isotropic
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
-from geosim.diagnose.stage_jpeg_blur import censored_blur
+from geosim.diagnose.stage_jpeg_blur import censored_blur, censored_resampling_check
 from geosim.diagnose.stage_jpeg_refit import (
     delivered_q,
     dithered_refit,
@@ -224,8 +224,12 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     model = coherent_resampling(inp, model, sel, setup, ev, window.candidates)
     # beside a resampling, an isotropic roll-off by its trace in the pixels
     model = pixel_isotropic(inp, model, sel, setup, ev, window.candidates)
-    # under JPEG, a blur by the scene's quantisation intervals, where the transfer cannot
-    model = censored_blur(inp, model, sel, setup, window, ev)
+    # under JPEG at high Q, a resampling kept only where the quantisation intervals want it;
+    # then a blur by those intervals, where the transfer cannot (not the one just withdrawn)
+    model, withdrawn_censored = censored_resampling_check(inp, model, window, ev)
+    model = censored_blur(inp, model, sel, setup, replace(window, candidates=tuple(
+        n for n in window.candidates
+        if n not in {w["name"] for w in withdrawn_censored})), ev)
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     model, withdrawn_alias = jpeg_resampling_beyond_optics(inp, model, sel, setup)
     found = model
@@ -245,8 +249,8 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         refined = judged.model.delivered(simulate, np.random.default_rng(ev.noise_seed),
                                          quantized=inp.quantized)
     model, claims = judged.model, judged.claims
-    withdrawn = (withdrawn_noise + withdrawn_floor + withdrawn_alias + withdrawn_iso
-                 + judged.withdrawn)
+    withdrawn = (withdrawn_noise + withdrawn_censored + withdrawn_floor + withdrawn_alias
+                 + withdrawn_iso + judged.withdrawn)
     summary = make_summary(inp, model, sel, setup, claims, ev, refined, withdrawn,
                            resampling_tested="resampling" in window.candidates,
                            whole=wholes[0] if wholes else None)

@@ -1,4 +1,5 @@
-"""A blur under JPEG, by the scene's quantisation intervals (:func:`censored_blur`).
+"""A blur under JPEG, by the scene's quantisation intervals (:func:`censored_blur`); a
+resampling under JPEG at high Q checked on them (:func:`censored_resampling_check`).
 
 Under JPEG the transfer fits see the scene through the JPEG's linearised transfer, which
 is measured only where the JPEG passes signal; at strong quantisation the high frequencies
@@ -57,7 +58,8 @@ from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_resampling_coherent import append_pixel_step
 from geosim.diagnose.stage_withdraw import no_worse_than_baseline
 
-__all__ = ["censored_blur", "CensoredFit", "MIN_HELDOUT_NATS", "MIN_HELDOUT_SUM_NATS",
+__all__ = ["censored_blur", "censored_resampling_check", "CHECK_MIN_Q", "CHECK_MIN_SUM_NATS",
+           "CensoredFit", "MIN_HELDOUT_NATS", "MIN_HELDOUT_SUM_NATS",
            "MEMBER_STARTS", "MEMBER_PARAMS",
            "MIN_Q", "MIN_BLOCKS"]
 
@@ -93,6 +95,10 @@ MIN_BLOCKS = 24
 #: the Q grid of the simulations: factors on the model's Q (geometric), and its size
 Q_SPAN = (1.0 / 1.6, 1.3)
 Q_GRID_SIZE = 25
+#: the resampling check's lowest Q (below it the native grid aliases what the optics pass,
+#: a trace the transfer fit reads) and the held-out gain (nats, both halves) it asks for
+CHECK_MIN_Q = 2.5
+CHECK_MIN_SUM_NATS = 0.0
 #: evaluations of each refinement (Nelder-Mead on log Q and the member's parameters)
 MAX_EVALUATIONS = 120
 
@@ -209,6 +215,71 @@ def _halves(blocks: CensoredBlocks, cols: int) -> list[np.ndarray] | None:
     return None if min(left.size, right.size) < MIN_BLOCKS else [left, right]
 
 
+def _prepare(inp: Inputs, model: ForwardModel, window: FitWindow, ev: EvalContext
+             ) -> tuple[_Scorer, list[np.ndarray]] | None:
+    """The scorer of ``model`` without its blur and JPEG (Q grid around its Q) on the
+    scene's blocks, and the blocks' two halves; None when a half is too small."""
+    assert model.compression is not None
+    plain = model.without(blur={}, compression=None)
+    mask = ev.mask & inp.valid
+    offset = block_grid(inp.grey, mask, model.compression.offset_px)
+    blocks = censored_blocks(inp.grey, offset, mask)
+    halves = _halves(blocks, mask.shape[1])
+    if halves is None or blocks.coef.size == 0:
+        return None
+    q_lo = max(window.q_lo, model.q * Q_SPAN[0])
+    q_hi = max(min(window.q_hi * 1.3, model.q * Q_SPAN[1]), q_lo * 1.01)
+    q_grid = np.geomspace(q_lo, q_hi, Q_GRID_SIZE)
+    sims = ExactSimulations([grey(plain.without(q=float(q)).deterministic(inp.simulate))
+                             for q in q_grid], q_grid)
+    return _Scorer(sims, plain, inp.simulate, blocks, q_lo, q_hi), halves
+
+
+def _heldout(score: _Scorer, halves: list[np.ndarray], fits: list[CensoredFit],
+             base: list[CensoredFit]) -> list[float]:
+    """Each half's log-likelihood (nats) under the fit made on the other half, less the
+    model's without a blur fitted alike."""
+    return [score(fits[k].q, fits[k].blur, halves[1 - k])
+            - score(base[k].q, {}, halves[1 - k]) for k in (0, 1)]
+
+
+def censored_resampling_check(inp: Inputs, model: ForwardModel, window: FitWindow,
+                              ev: EvalContext) -> tuple[ForwardModel, list[dict[str, str]]]:
+    """Under JPEG at Q ≥ :data:`CHECK_MIN_Q`, a resampling (the model's only blur) is kept
+    only where the scene's quantisation intervals are explained better with it: its pitch
+    and native phase (from the model's and :data:`MEMBER_STARTS`) and Q fitted on one half
+    of the blocks must raise the other half's log-likelihood, summed over both ways round,
+    above :data:`CHECK_MIN_SUM_NATS` against the model without it. Withdrawn otherwise, Q
+    fitted without it on the same likelihood (all blocks).
+
+    There the optics pass little the native grid aliases, and the transfer fit's evidence
+    is power above the optical cut-off, where the JPEG puts its own (development, round 32:
+    the 28 JPEG rows claiming a resampling; the four false ones, c628, c861, c939 and c982 —
+    three on one tile — summed −3.6 to −0.8 nats, the true ones at Q ≥ 2.5 +1.5 (c719) to
+    +37; c288's −4.6 at Q 1.3 is below the check's Q)."""
+    if (model.compression is None or set(model.blur) != {"resampling"}
+            or model.q < CHECK_MIN_Q or not _renders_natively(inp, model)):
+        return model, []
+    prepared = _prepare(inp, model, window, ev)
+    if prepared is None:
+        return model, []
+    score, halves = prepared
+    pitch = float(model.blur["resampling"]["native_pitch_px"])
+    own = {"native_pitch_px": pitch, "phase_row_px": model.native_phase_px[0],
+           "phase_col_px": model.native_phase_px[1]}
+    starts = [own, *MEMBER_STARTS["resampling"]]
+    base = [score.fit_q({}, h, model.q) for h in halves]
+    fits = [score.fit_member("resampling", h, model.q, starts) for h in halves]
+    gain = sum(_heldout(score, halves, fits, base))
+    if gain > CHECK_MIN_SUM_NATS:
+        return model, []
+    q = score.fit_q({}, None, model.q).q
+    return model.without(q=q, blur={}), [{
+        "name": "resampling",
+        "reason": f"under JPEG at Q {model.q:.2f} the scene's quantisation intervals are "
+                  f"explained no better with it (held-out log-likelihood {gain:+.1f} nats)"}]
+
+
 def censored_blur(inp: Inputs, model: ForwardModel, sel: BlurSelection,
                   setup: SpectralSetup, window: FitWindow, ev: EvalContext) -> ForwardModel:
     """A blur claimed under JPEG by the scene's quantisation intervals (module docstring).
@@ -223,29 +294,16 @@ def censored_blur(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     plain = model.without(blur={}, compression=None)
     if "resampling" in members and not _renders_natively(inp, plain):
         members.remove("resampling")
-    mask = ev.mask & inp.valid
-    offset = block_grid(inp.grey, mask, model.compression.offset_px)
-    blocks = censored_blocks(inp.grey, offset, mask)
-    halves = _halves(blocks, mask.shape[1])
-    if halves is None or blocks.coef.size == 0:
+    prepared = _prepare(inp, model, window, ev)
+    if prepared is None:
         return model
-    q_lo = max(window.q_lo, model.q * Q_SPAN[0])
-    q_hi = max(min(window.q_hi * 1.3, model.q * Q_SPAN[1]), q_lo * 1.01)
-    q_grid = np.geomspace(q_lo, q_hi, Q_GRID_SIZE)
-    sims = ExactSimulations([grey(plain.without(q=float(q)).deterministic(inp.simulate))
-                             for q in q_grid], q_grid)
-    score = _Scorer(sims, plain, inp.simulate, blocks, q_lo, q_hi)
+    score, halves = prepared
 
     base = [score.fit_q({}, h, model.q) for h in halves]
     fits = {n: [score.fit_member(n, h, model.q, MEMBER_STARTS[n]) for h in halves]
             for n in members}
 
-    def heldout(fit_on: list[CensoredFit]) -> list[float]:
-        # fitted on one half, scored on the other, against the base fitted alike
-        return [score(fit_on[k].q, fit_on[k].blur, halves[1 - k])
-                - score(base[k].q, {}, halves[1 - k]) for k in (0, 1)]
-
-    gains = {n: heldout(f) for n, f in fits.items()}
+    gains = {n: _heldout(score, halves, f, base) for n, f in fits.items()}
     passing = [n for n in members if min(gains[n]) >= MIN_HELDOUT_NATS
                and sum(gains[n]) >= MIN_HELDOUT_SUM_NATS]
     if not passing:
