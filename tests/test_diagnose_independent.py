@@ -27,6 +27,7 @@ from geosim.diagnose.report_markdown import diagnosis_markdown  # noqa: E402
 from geosim.diagnose.resampling_limit import PITCHES  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
+from tests.generator_cases import diagnose_scene as _run  # noqa: E402
 
 
 def test_generator_is_independent_of_geosim():
@@ -39,20 +40,6 @@ def test_generator_is_independent_of_geosim():
             mods.add(node.module or "")
     assert mods, "no imports found"
     assert not [m for m in mods if m.split(".")[0] == "geosim"], mods
-
-
-def _run(truth: dict, q: float, seed: int, sat_px: int = 96, variant: dict | None = None):
-    rng = np.random.default_rng(seed)
-    ground = gen.synthetic_ground(rng, (sat_px + 24) * gen.PHI)
-    uav, real = gen.render(ground, q, truth, rng, margin_px=12, variant=variant)
-    sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
-    valid = np.ones(real.shape[-2:], bool)
-    q_base = calibrate_q_lv(sim, luma(real), valid)
-    d = diagnose_arrays(real, sim, q_base=q_base, rng=np.random.default_rng(0), q_lo=0.7)
-    claimed = {e["name"]: e for e in d.summary["effects"]}
-    se_base = gen.spectral_error(np.rint(d.baseline), real)
-    se_ref = gen.spectral_error(np.rint(d.refined), real)
-    return claimed, se_base, se_ref, d
 
 
 def test_control_from_independent_generator_claims_nothing():

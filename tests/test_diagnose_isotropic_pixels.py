@@ -13,7 +13,7 @@ import pytest
 
 import geosim.diagnose.stage_isotropic_pixels as iso
 from geosim.diagnose.stage_isotropic_pixels import IsotropicScan
-from tests.test_diagnose_independent import _run
+from tests.generator_cases import diagnose_scene as _run
 
 RESAMPLED_DETECTOR = {"resampling": {"native_pitch_px": 1.5},
                       "detector_integration": {"pitch_px": 1.5}}

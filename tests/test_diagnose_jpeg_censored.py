@@ -25,9 +25,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_generator as gen  # noqa: E402
 
-from geosim.diagnose.engine import diagnose_arrays  # noqa: E402
-from geosim.diagnose.grids import calibrate_q_lv  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
+from tests.generator_cases import diagnose_scene, render_scene  # noqa: E402
 
 
 def _scene(seed: int = 3, n: int = 96) -> np.ndarray:
@@ -84,19 +83,6 @@ def test_the_image_the_jpeg_was_given_scores_best():
     assert log_likelihood(blocks, coef, rows) == pytest.approx(ll["blur 0.0"])
 
 
-def _diagnose(truth: dict, q: float, seed: int, sat_px: int = 96):
-    rng = np.random.default_rng(seed)
-    ground = gen.synthetic_ground(rng, (sat_px + 24) * gen.PHI)
-    uav, real = gen.render(ground, q, truth, rng, margin_px=12)
-    sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
-    valid = np.ones(real.shape[-2:], bool)
-    q_base = calibrate_q_lv(sim, luma(real), valid)
-    d = diagnose_arrays(real, sim, q_base=q_base, rng=np.random.default_rng(0), q_lo=0.7)
-    se_base = gen.spectral_error(np.rint(d.baseline), real)
-    se_ref = gen.spectral_error(np.rint(d.refined), real)
-    return {e["name"]: e for e in d.summary["effects"]}, se_base, se_ref, d
-
-
 def test_smear_under_strong_jpeg_found_through_the_intervals():
     # before the censored test this scene's smear went into Q (claimed: compression only).
     # At Q 3 the smear's sinc zero (0.42 cycles/px) lies beyond the optics' cut-off, so the
@@ -104,7 +90,7 @@ def test_smear_under_strong_jpeg_found_through_the_intervals():
     # other as its alternative; the direction, Q and the fit are what the data decide
     truth = {"motion_smear": {"length_px": 2.4, "direction_deg": 100.0},
              "compression": {"quality": 45}}
-    claimed, se_base, se_ref, d = _diagnose(truth, q=3.0, seed=23)
+    claimed, se_base, se_ref, d = diagnose_scene(truth, q=3.0, seed=23)
     aniso = {"motion_smear", "off_nadir_anisotropy"}
     assert set(claimed) - aniso == {"compression"}, list(claimed)
     assert len(set(claimed) & aniso) == 1, list(claimed)
@@ -118,7 +104,7 @@ def test_smear_under_strong_jpeg_found_through_the_intervals():
 
 
 def test_jpeg_alone_at_high_q_claims_no_blur_through_the_intervals():
-    claimed, se_base, se_ref, _ = _diagnose({"compression": {"quality": 45}}, q=3.0, seed=22)
+    claimed, se_base, se_ref, _ = diagnose_scene({"compression": {"quality": 45}}, q=3.0, seed=22)
     assert set(claimed) == {"compression"}, list(claimed)
     assert se_ref <= se_base
 
@@ -128,7 +114,7 @@ def test_resampling_under_jpeg_named_through_the_intervals():
     # 1.05); through the intervals the native grid's aperture and aliasing are told from a
     # detector box or an atmosphere, which are listed as alternatives
     truth = {"resampling": {"native_pitch_px": 1.7}, "compression": {"quality": 50}}
-    claimed, se_base, se_ref, d = _diagnose(truth, q=1.05, seed=25)
+    claimed, se_base, se_ref, d = diagnose_scene(truth, q=1.05, seed=25)
     assert set(claimed) == {"compression", "resampling"}, list(claimed)
     assert abs(claimed["resampling"]["params"]["native_pitch_px"] - 1.7) < 0.1
     assert abs(d.summary["refined"]["q"] - 1.05) < 0.1, d.summary["refined"]["q"]
@@ -145,9 +131,7 @@ def _resampling_model(truth: dict, q: float, seed: int, pitch: float):
     from geosim.diagnose.stage_inputs import make_inputs
     from geosim.diagnose.stage_register import coregister
 
-    rng = np.random.default_rng(seed)
-    ground = gen.synthetic_ground(rng, (96 + 24) * gen.PHI)
-    uav, real = gen.render(ground, q, truth, rng, margin_px=12)
+    uav, real = render_scene(truth, q, seed)
     inp = make_inputs(real, QSimulator(uav, phi=gen.PHI, q_min=0.6), q, None, None, True, 0.5)
     # the generator JPEGs the scene with its 12 px margin: blocks at 12 mod 16
     model = ForwardModel(q=q, blur={"resampling": {"native_pitch_px": pitch}},

@@ -28,17 +28,12 @@ from geosim.diagnose.stage_jpeg import (  # noqa: E402
 )
 from geosim.diagnose.stage_radiometry import band_affine  # noqa: E402
 from geosim.diagnose.stage_register import coregister  # noqa: E402
+from tests.generator_cases import render_scene  # noqa: E402
 
 #: the block-edge step test that gated compression until round 16 (ratio of the step
 #: phase to the others and z-score, both axes): a tiled pattern passes it
 BLOCK_STEP_RATIO = 1.2
 BLOCK_STEP_Z = 3.0
-
-
-def _scene(q: float, truth: dict, seed: int, sat_px: int = 96):
-    rng = np.random.default_rng(seed)
-    ground = gen.synthetic_ground(rng, (sat_px + 24) * gen.PHI)
-    return gen.render(ground, q, truth, rng, margin_px=12)
 
 
 def _noise(gain_dn: float, read_var_dn2: float) -> NoiseEstimate:
@@ -60,7 +55,7 @@ def test_block_steps_without_a_lattice_are_not_compression():
     quantisation lattice in its DCT coefficients, so no compression is claimed; Pillow's
     JPEG of the same scene at quality 40 and 65 has the lattice and is claimed."""
     q_true = 1.5
-    uav, real = _scene(q_true, {}, 11)
+    uav, real = render_scene({}, q_true, 11)
     sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
     rows, cols = real.shape[-2:]
     tiles = 3.0 * (((np.arange(rows)[:, None] // 8) + (np.arange(cols)[None] // 8)) % 2)

@@ -34,6 +34,7 @@ from geosim.diagnose.jpeg_noise import (
     OUTLIER_FRACTION,
     block_dct,
     lattice_steps,
+    whole_blocks,
 )
 
 __all__ = ["CensoredBlocks", "censored_blocks", "log_likelihood", "VAR_GRID_DN2"]
@@ -101,10 +102,8 @@ def censored_blocks(real_grey: np.ndarray, offset_px: tuple[int, int], mask: np.
     spread = OUTLIER_SPREAD_SD * np.std(x, axis=0) + t if x.size else t
     outlier = OUTLIER_FRACTION * np.where(t > 1, np.minimum(1.0, t / spread), 1.0 / spread)
     r0, c0 = int(offset_px[0]) % 8, int(offset_px[1]) % 8
-    nr, nc = (mask.shape[0] - r0) // 8, (mask.shape[1] - c0) // 8
-    keep = mask[r0:r0 + nr * 8, c0:c0 + nc * 8].reshape(nr, 8, nc, 8).all(axis=(1, 3))
-    cols = np.broadcast_to(c0 + 8 * np.arange(nc)[np.newaxis, :] + 4.0, (nr, nc))[keep]
-    return CensoredBlocks((r0, c0), mask, index, t, coef, outlier, np.asarray(cols, float))
+    cols = c0 + 8.0 * np.nonzero(whole_blocks(mask, (r0, c0)))[1] + 4.0
+    return CensoredBlocks((r0, c0), mask, index, t, coef, outlier, cols)
 
 
 def log_likelihood(blocks: CensoredBlocks, model_coef: np.ndarray,

@@ -26,7 +26,8 @@ import numpy as np
 from scipy import fft as sfft
 from scipy.special import ndtr
 
-__all__ = ["JpegNoiseFit", "block_dct", "block_grid", "jitter_density", "lattice_steps",
+__all__ = ["JpegNoiseFit", "block_dct", "whole_blocks", "block_grid", "jitter_density",
+           "lattice_steps",
            "lattice_evidence", "jpeg_noise_variance", "MIN_LATTICE_GAIN", "BRIGHTNESS_CLASSES",
            "NoiseLine"]
 
@@ -108,13 +109,17 @@ def block_dct(grey: np.ndarray, offset_px: tuple[int, int], mask: np.ndarray | N
     g = np.asarray(grey, float)[r0:, c0:]
     nr, nc = g.shape[0] // 8, g.shape[1] // 8
     blk = g[:nr * 8, :nc * 8].reshape(nr, 8, nc, 8).transpose(0, 2, 1, 3)
-    if mask is not None:
-        m = np.asarray(mask, bool)[r0:, c0:][:nr * 8, :nc * 8]
-        keep = m.reshape(nr, 8, nc, 8).all(axis=(1, 3))
-        blk = blk[keep]
-    else:
-        blk = blk.reshape(-1, 8, 8)
+    blk = blk[whole_blocks(mask, offset_px)] if mask is not None else blk.reshape(-1, 8, 8)
     return sfft.dctn(blk, type=2, norm="ortho", axes=(-2, -1)).reshape(-1, 64)
+
+
+def whole_blocks(mask: np.ndarray, offset_px: tuple[int, int]) -> np.ndarray:
+    """Bool (block rows, block cols): the 8×8 blocks starting at ``offset_px`` (row, col)
+    that lie wholly inside ``mask`` (the blocks :func:`block_dct` keeps, in its order)."""
+    r0, c0 = int(offset_px[0]) % 8, int(offset_px[1]) % 8
+    m = np.asarray(mask, bool)[r0:, c0:]
+    nr, nc = m.shape[0] // 8, m.shape[1] // 8
+    return m[:nr * 8, :nc * 8].reshape(nr, 8, nc, 8).all(axis=(1, 3))
 
 
 def jitter_density(d: np.ndarray, step: np.ndarray | float,

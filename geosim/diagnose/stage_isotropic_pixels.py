@@ -36,9 +36,9 @@ from geosim.diagnose.fit import fit_transfer
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import (
     BLUR_FAMILY,
-    EFFECT_SIZE,
     Alternative,
     BlurSelection,
+    clearly_present,
 )
 from geosim.diagnose.stage_aliasing import refined_from
 from geosim.diagnose.stage_blur import SpectralSetup
@@ -130,9 +130,9 @@ def _pinned(member: str, value: float) -> bool:
 
 
 def _sized(member: str, value: float) -> bool:
-    """Clearly away from the member's null (:data:`~geosim.diagnose.select.EFFECT_SIZE`)."""
-    _, op, limit = EFFECT_SIZE[member]
-    return value >= limit if op == ">=" else value <= limit
+    """Clearly away from the member's null: :func:`~geosim.diagnose.select.clearly_present`
+    on its scanned parameter."""
+    return clearly_present(member, {MEMBER_SCAN[member][0]: value})
 
 
 def isotropic_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup, ev: EvalContext,

@@ -47,11 +47,11 @@ from geosim.diagnose.jpeg_censored import CensoredBlocks, censored_blocks, log_l
 from geosim.diagnose.jpeg_noise import block_grid
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import (
-    EFFECT_MAX,
-    EFFECT_SIZE,
     Alternative,
     BlurSelection,
     at_bound,
+    clearly_present,
+    plausible,
 )
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs, grey
@@ -105,7 +105,7 @@ MAX_EVALUATIONS = 120
 
 @dataclass(frozen=True)
 class CensoredFit:
-    """A model fitted on the censored likelihood: Q, the blur (None: none) and the
+    """A model fitted on the censored likelihood: Q, the blur ({}: none) and the
     log-likelihood (nats) on the blocks it was fitted on."""
 
     q: float
@@ -198,17 +198,6 @@ def _claimed(blur: dict[str, dict[str, float]]) -> dict[str, float]:
     return {k: v for k, v in p.items() if not k.startswith("phase_")}
 
 
-def _sized(name: str, params: dict[str, float]) -> bool:
-    """Clearly away from the null (:data:`~geosim.diagnose.select.EFFECT_SIZE`) and
-    physically plausible (:data:`~geosim.diagnose.select.EFFECT_MAX`: a box wider than two
-    pixels is a resampling's native aperture, development c204)."""
-    key, op, limit = EFFECT_SIZE[name]
-    v = params[key]
-    sized = v >= limit if op == ">=" else v <= limit
-    key_max, most = EFFECT_MAX.get(name, (key, np.inf))
-    return sized and params[key_max] <= most
-
-
 def _halves(blocks: CensoredBlocks, cols: int) -> list[np.ndarray] | None:
     left = np.flatnonzero(blocks.block_col < cols / 2.0)
     right = np.flatnonzero(blocks.block_col >= cols / 2.0)
@@ -235,12 +224,19 @@ def _prepare(inp: Inputs, model: ForwardModel, window: FitWindow, ev: EvalContex
     return _Scorer(sims, plain, inp.simulate, blocks, q_lo, q_hi), halves
 
 
+def _base_heldout(score: _Scorer, halves: list[np.ndarray], base: list[CensoredFit]
+                  ) -> list[float]:
+    """Each half's log-likelihood (nats) under the model without a blur fitted on the
+    other half (what every member's held-out gain is measured against)."""
+    return [score(base[k].q, {}, halves[1 - k]) for k in (0, 1)]
+
+
 def _heldout(score: _Scorer, halves: list[np.ndarray], fits: list[CensoredFit],
-             base: list[CensoredFit]) -> list[float]:
+             base_heldout: list[float]) -> list[float]:
     """Each half's log-likelihood (nats) under the fit made on the other half, less the
-    model's without a blur fitted alike."""
-    return [score(fits[k].q, fits[k].blur, halves[1 - k])
-            - score(base[k].q, {}, halves[1 - k]) for k in (0, 1)]
+    model's without a blur fitted alike (:func:`_base_heldout`)."""
+    return [score(fits[k].q, fits[k].blur, halves[1 - k]) - base_heldout[k]
+            for k in (0, 1)]
 
 
 def censored_resampling_check(inp: Inputs, model: ForwardModel, window: FitWindow,
@@ -258,7 +254,7 @@ def censored_resampling_check(inp: Inputs, model: ForwardModel, window: FitWindo
     three on one tile — summed −3.6 to −0.8 nats, the true ones at Q ≥ 2.5 +1.5 (c719) to
     +37; c288's −4.6 at Q 1.3 is below the check's Q)."""
     if (model.compression is None or set(model.blur) != {"resampling"}
-            or model.q < CHECK_MIN_Q or not _renders_natively(inp, model)):
+            or model.q < CHECK_MIN_Q or not _renders_natively(inp, model.q)):
         return model, []
     prepared = _prepare(inp, model, window, ev)
     if prepared is None:
@@ -270,7 +266,7 @@ def censored_resampling_check(inp: Inputs, model: ForwardModel, window: FitWindo
     starts = [own, *MEMBER_STARTS["resampling"]]
     base = [score.fit_q({}, h, model.q) for h in halves]
     fits = [score.fit_member("resampling", h, model.q, starts) for h in halves]
-    gain = sum(_heldout(score, halves, fits, base))
+    gain = sum(_heldout(score, halves, fits, _base_heldout(score, halves, base)))
     if gain > CHECK_MIN_SUM_NATS:
         return model, []
     q = score.fit_q({}, None, model.q).q
@@ -291,8 +287,7 @@ def censored_blur(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     members = [n for n in MEMBER_STARTS if n in window.candidates]
     if model.compression is None or model.blur or not members or model.q < MIN_Q:
         return model
-    plain = model.without(blur={}, compression=None)
-    if "resampling" in members and not _renders_natively(inp, plain):
+    if "resampling" in members and not _renders_natively(inp, model.q):
         members.remove("resampling")
     prepared = _prepare(inp, model, window, ev)
     if prepared is None:
@@ -303,7 +298,8 @@ def censored_blur(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     fits = {n: [score.fit_member(n, h, model.q, MEMBER_STARTS[n]) for h in halves]
             for n in members}
 
-    gains = {n: _heldout(score, halves, f, base) for n, f in fits.items()}
+    base_heldout = _base_heldout(score, halves, base)
+    gains = {n: _heldout(score, halves, f, base_heldout) for n, f in fits.items()}
     passing = [n for n in members if min(gains[n]) >= MIN_HELDOUT_NATS
                and sum(gains[n]) >= MIN_HELDOUT_SUM_NATS]
     if not passing:
@@ -312,31 +308,32 @@ def censored_blur(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     start = max(fits[name], key=lambda f: f.log_lik)
     final = score.fit_member(name, None, start.q, [start.blur[name]])
     params = _claimed(final.blur)
-    if not _sized(name, params) or at_bound(name, params):
+    # clearly away from the null, plausible (a box wider than two pixels is a resampling's
+    # native aperture, development c204) and not at a bound
+    if not (clearly_present(name, params) and plausible(name, params)) \
+            or at_bound(name, params):
         return model
     chosen = _with_blur(model.without(q=final.q), final.blur)
     if not no_worse_than_baseline(inp, ev)(chosen):
         return model
-    alternatives = [Alternative(n, _fraction(gains[n], base, score, halves),
+    alternatives = [Alternative(n, _fraction(gains[n], base_heldout),
                                 _claimed(max(fits[n], key=lambda f: f.log_lik).blur))
                     for n in passing if n != name]
     fit = fit_transfer(setup.full, [], fix_q=final.q, fixed={name: params})
     append_pixel_step(sel, setup, name, fit, {}, len(params),
-                      _fraction(gains[name], base, score, halves), alternatives)
+                      _fraction(gains[name], base_heldout), alternatives)
     return chosen
 
 
-def _renders_natively(inp: Inputs, plain: ForwardModel) -> bool:
-    """Whether the simulator renders a resampling through its native grid (the UAV image
-    kept and valid everywhere: :meth:`~geosim.diagnose.simulate.QSimulator.native`)."""
+def _renders_natively(inp: Inputs, q: float) -> bool:
+    """Whether the simulator renders a resampling through its native grid at ``q`` (the
+    UAV image kept and valid everywhere: :meth:`~geosim.diagnose.simulate.QSimulator.native`)."""
     native = getattr(inp.simulate, "native", None)
-    return callable(native) and native(plain.q, 1.5) is not None
+    return callable(native) and native(q, 1.5) is not None
 
 
-def _fraction(gain: list[float], base: list[CensoredFit], score: Callable[..., float],
-              halves: list[np.ndarray]) -> float:
+def _fraction(gain: list[float], base_heldout: list[float]) -> float:
     """The weaker half's held-out gain as a fraction of that half's negative
     log-likelihood under the model without a blur."""
     k = int(np.argmin(gain))
-    ll0 = score(base[k].q, {}, halves[1 - k])
-    return float(gain[k] / max(abs(ll0), 1e-9))
+    return float(gain[k] / max(abs(base_heldout[k]), 1e-9))
