@@ -60,7 +60,10 @@ __all__ = ["coherent_resampling", "CoherentScan", "coherent_scan", "COHERENT_MIN
 #: each half. Set on the development half (round 25, the 125 scenes with noise claimed, no
 #: JPEG and no resampling found by round 24's code): the 103 without a resampling reached
 #: at most 1.3 on their weaker half; of the 22 with one, c539 65, c344 78, c316 12 (the
-#: others below 9, most negative: the transfer's Q, the phase grid or other blurs off)
+#: others below 9, most negative: the transfer's Q, the phase grid or other blurs off).
+#: Round 34's finer scan, same rule: of the 137 development scenes of its domain without a
+#: resampling, c319 reached 23.1 (withdrawn by :data:`ALIAS_MIN_DCHI2`), the next 2.3
+#: (c377); of the 27 with one, 16 passed, c642 9.2, the others below 0
 COHERENT_MIN_DCHI2 = 10.0
 #: native-grid phases scanned per axis (steps of pitch / PHASE_STEPS)
 PHASE_STEPS = 3
@@ -86,10 +89,11 @@ LOCAL_PHASE_STEPS = 6
 REFINE_SIMPLEX_STEPS = (0.03, 0.005, 0.1, 0.1)
 #: held-out drop (as :data:`COHERENT_MIN_DCHI2`) the placed aliases must bring against the
 #: resampled model's own mean over the phase (:func:`aliasing_dchi2`), on each half. Set on
-#: the development half (round 34, the first 64 of the 181 noisy scenes without JPEG):
-#: of the 8 that passed the held-out test, the one false (c319, pitch 1.16 px for a
-#: missed atmosphere at Q 3.2) reached -12.5 on its better half; the 7 true 9.7 (c316)
-#: to 57 on their weaker half
+#: the development half (round 34, the first 8 of the 181 noisy scenes without JPEG to
+#: pass the held-out test): the one false (c319, pitch 1.16 px for a missed atmosphere at
+#: Q 3.2) reached -12.5 on its better half, the 7 true 9.7 (c316) to 55 on their weaker.
+#: Of the other 9 that passed it, 8 true reached 7.3 (c693) to 75, and c1057's true
+#: resampling, fitted at 1.33 px for 1.61 beside an off-nadir blur, -35
 ALIAS_MIN_DCHI2 = 5.0
 #: native phases per axis averaged by :func:`phase_mean`
 MEAN_PHASE_STEPS = 4
