@@ -80,24 +80,18 @@ def test_refinement_places_the_generators_native_grid():
     half a step of the scan's pitches off (the farthest the scan's nearest pitch can be)
     and a third of a native pixel off in phase, finds its pitch and phase from the noisy
     pixels."""
-    from geosim.diagnose.model import ForwardModel, Registration
-    from geosim.diagnose.simulate import QSimulator
-    from geosim.diagnose.stage_inputs import make_inputs
-    from tests.generator_cases import gen, render_scene
+    from geosim.diagnose.model import ForwardModel
+    from tests.generator_cases import no_registration, scene_inputs
 
     truth = {"resampling": {"native_pitch_px": 1.45}, "sensor_noise": NOISE}
-    uav, real = render_scene(truth, q=3.0, seed=31, sat_px=96)
+    inp, real = scene_inputs(truth, q=3.0, seed=31, sat_px=96)
     n_window = 96 + 2 * 12
     pitch = n_window / round(n_window / 1.45)          # 120 / 83
     phase = (-12.0) % pitch                           # a native edge at the window's
-    sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
-    inp = make_inputs(real, sim, 3.0, None, None, None, 0.5)
-    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
-                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
     start = ForwardModel(q=3.15, blur={"resampling": {"native_pitch_px": pitch + 0.005,
                                                       "cubic_a": -0.75},
                                        "detector_integration": {"pitch_px": 0.2}},
-                         registration=reg,
+                         registration=no_registration(),
                          native_phase_px=((phase + pitch / 3) % pitch,) * 2)
     mask = np.zeros(real.shape[-2:], bool)
     mask[6:-6, 6:-6] = True
@@ -157,21 +151,16 @@ def test_aliases_placed_must_help_beyond_the_roll_off(truth, q, seed, start_pitc
     """The resampled model refined on each colour of the checkerboard, scored on the other
     against its own mean over the native phase (the roll-off without the aliases)."""
     from geosim.diagnose.context import EvalContext
-    from geosim.diagnose.model import ForwardModel, Registration
-    from geosim.diagnose.simulate import QSimulator
-    from geosim.diagnose.stage_inputs import make_inputs
-    from tests.generator_cases import gen, render_scene
+    from geosim.diagnose.model import ForwardModel
+    from tests.generator_cases import no_registration, scene_inputs
 
-    uav, real = render_scene(truth, q=q, seed=seed, sat_px=96)
-    sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
-    inp = make_inputs(real, sim, q, None, None, None, 0.5)
-    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
-                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+    inp, real = scene_inputs(truth, q=q, seed=seed, sat_px=96)
     ev = EvalContext(mask=np.ones(real.shape[-2:], bool), origins=[], block_px=32,
                      real_grey=inp.grey, noise_seed=0)
     halves = coherent.checker_halves(ev)
     start = ForwardModel(q=q, blur={"resampling": {"native_pitch_px": start_pitch,
-                                                   "cubic_a": start_a}}, registration=reg)
+                                                   "cubic_a": start_a}},
+                         registration=no_registration())
     scan = CoherentScan(halves=halves, base=[], resampled=[])
     for k, h in enumerate(halves):
         m = coherent.refine_resampled(inp, start, h)

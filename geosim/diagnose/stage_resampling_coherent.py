@@ -206,25 +206,31 @@ def checker_halves(ev: EvalContext) -> list[np.ndarray] | None:
     holds none."""
     mask = _trimmed(ev)
     rows, cols = np.indices(mask.shape)
-    black = ((rows // CHECKER_PX + cols // CHECKER_PX) % 2) == 0
-    halves = [mask & black, mask & ~black]
-    return None if min(int(h.sum()) for h in halves) == 0 else halves
+    return _split(mask, ((rows // CHECKER_PX + cols // CHECKER_PX) % 2) == 0)
 
 
 def eval_halves(ev: EvalContext) -> list[np.ndarray] | None:
     """The evaluation pixels (``ev.mask`` less :data:`EDGE_PX` at each edge) left and
     right of the middle column; None when a half holds none."""
     mask = _trimmed(ev)
-    cols = np.arange(mask.shape[1])[np.newaxis, :]
-    halves = [mask & (cols < mask.shape[1] // 2), mask & (cols >= mask.shape[1] // 2)]
+    return _split(mask, np.arange(mask.shape[1])[np.newaxis, :] < mask.shape[1] // 2)
+
+
+def _split(mask: np.ndarray, first: np.ndarray) -> list[np.ndarray] | None:
+    """``mask`` where ``first`` holds and where it does not; None when either is empty."""
+    halves = [mask & first, mask & ~first]
     return None if min(int(h.sum()) for h in halves) == 0 else halves
+
+
+def _rss(residual: np.ndarray, halves: list[np.ndarray]) -> list[float]:
+    """[Σ residual² on each half, DN²]."""
+    return [float(np.sum(residual[h] ** 2)) for h in halves]
 
 
 def rss_on_halves(inp: Inputs, halves: list[np.ndarray], m: ForwardModel) -> list[float]:
     """[RSS on each half, DN²] of the real scene (grey) against ``m``'s expected image
     (:meth:`~geosim.diagnose.model.ForwardModel.deterministic`: no noise realisation)."""
-    r = inp.grey - grey(m.deterministic(inp.simulate))
-    return [float(np.sum(r[h] ** 2)) for h in halves]
+    return _rss(inp.grey - grey(m.deterministic(inp.simulate)), halves)
 
 
 def coherent_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
@@ -262,7 +268,7 @@ def coherent_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
                 for k, pc in enumerate(steps):
                     mp = m1.without(native_phase_px=(float(pr), float(pc)))
                     res[j, k] = inp.grey - grey(mp.deterministic(inp.simulate))
-                    resampled.append((mp, [float(np.sum(res[j, k][h] ** 2)) for h in halves]))
+                    resampled.append((mp, _rss(res[j, k], halves)))
             for h, out in zip(halves, phased, strict=True):
                 v, (pr, pc) = phase_harmonics(res[:, :, h], float(pitch))
                 out.append((v, m1.without(native_phase_px=(pr, pc))))
@@ -331,7 +337,7 @@ def aliasing_dchi2(inp: Inputs, scan: CoherentScan) -> list[float]:
         o = 1 - k
         m, rss = scan.chosen(k)
         h = scan.halves[o]
-        mean_rss = float(np.sum((inp.grey - phase_mean(inp, m))[h] ** 2))
+        mean_rss = _rss(inp.grey - phase_mean(inp, m), [h])[0]
         out.append((mean_rss - rss[o]) / max(mean_rss / max(int(h.sum()), 1), 1e-12))
     return out
 
