@@ -144,6 +144,18 @@ class RadiometryChoice:
             return out
         return img
 
+    def gain_offset(self, n_bands: int) -> tuple[np.ndarray, np.ndarray]:
+        """(gain, offset DN) per band of ``n_bands``: :meth:`apply` is ``gain · x + offset``."""
+        gain, offset = np.ones(n_bands), np.zeros(n_bands)
+        if self.name == "haze":
+            gain, offset = (np.broadcast_to(np.asarray(self.params[k], float), (n_bands,))
+                            for k in ("transmission", "path_radiance_dn"))
+        elif self.name == "colour_response":
+            gain = np.broadcast_to(np.asarray(self.params["gain"], float), (n_bands,))
+            if "offset_dn" in self.params:
+                offset = np.broadcast_to(np.asarray(self.params["offset_dn"], float), (n_bands,))
+        return gain, offset
+
 
 @dataclass
 class NoiseEstimate:

@@ -70,6 +70,7 @@ class QSimulator:
         self._native_coef: tuple[object, np.ndarray] | None = None
         self._alias: tuple[object, dict[tuple[int, int], tuple[QSimulator, QSimulator]]] | None \
             = None
+        self._weighted: tuple[tuple[float, ...], QSimulator] | None = None
         if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
             self.uav = None
 
@@ -122,6 +123,22 @@ class QSimulator:
             self._variants.pop(next(iter(self._variants)))
         self._variants[ck] = out
         return out
+
+    def weighted(self, weights: tuple[float, ...]) -> QSimulator | None:
+        """The simulator of the one-band image ``Σ_b weights[b] · uav[b]`` (its paper
+        model, variants and native renders are the same weighted sums of this one's, every
+        step being linear and the same in each band); the last one is kept. ``None`` when
+        this simulator keeps no image or ``weights`` does not match its bands."""
+        if self.uav is None or len(weights) != (self.uav.shape[0] if self.uav.ndim == 3 else 1):
+            return None
+        key = tuple(float(w) for w in weights)
+        if self._weighted is None or self._weighted[0] != key:
+            img = np.asarray(self.uav, dtype=float)
+            img = img[np.newaxis] if img.ndim == 2 else img
+            one = np.tensordot(np.asarray(key), img, axes=1)[np.newaxis]
+            self._weighted = (key, QSimulator(one, phi=self.phi, valid=self.valid,
+                                              q_min=self.q_min))
+        return self._weighted[1]
 
     def alias_simulators(self, shift_px: tuple[float, float] = (0.0, 0.0)
                          ) -> dict[tuple[int, int], tuple[QSimulator, QSimulator]] | None:
@@ -184,7 +201,9 @@ class QSimulator:
             # the optics' image as its DCT below the cut-off (the pitch and phase scans
             # reuse it): no inverse transform of the fine image
             coef = self._native_coef[1]
-            otf_k = optics_otf_below_cutoff(coef.shape[-2:], q=q, phi=self.phi)
+            # at the Q of the cache key, as __call__ renders: a Q differing beyond the key's
+            # digits would otherwise render as whichever came first
+            otf_k = optics_otf_below_cutoff(coef.shape[-2:], q=ck[0], phi=self.phi)
             self._native_fine = (ck, coef[:, :otf_k.shape[0], :otf_k.shape[1]] * otf_k)
             self._native_low = None
         band_coef = self._native_fine[1]

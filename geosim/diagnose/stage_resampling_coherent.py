@@ -36,6 +36,7 @@ from scipy.optimize import minimize, minimize_scalar
 
 from geosim.diagnose.context import EvalContext
 from geosim.diagnose.fit import TransferFit
+from geosim.diagnose.grey_render import grey_expected
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import AcceptedEffect, Alternative, BlurSelection, delta_bic
 from geosim.diagnose.stage_aliasing import (
@@ -45,7 +46,7 @@ from geosim.diagnose.stage_aliasing import (
     with_resampling,
 )
 from geosim.diagnose.stage_blur import SpectralSetup
-from geosim.diagnose.stage_inputs import Inputs, grey
+from geosim.diagnose.stage_inputs import Inputs
 from geosim.physics.cubic import KEYS_A, OPENCV_A
 
 __all__ = ["coherent_resampling", "CoherentScan", "coherent_scan", "COHERENT_MIN_DCHI2",
@@ -229,8 +230,9 @@ def _rss(residual: np.ndarray, halves: list[np.ndarray]) -> list[float]:
 
 def rss_on_halves(inp: Inputs, halves: list[np.ndarray], m: ForwardModel) -> list[float]:
     """[RSS on each half, DN²] of the real scene (grey) against ``m``'s expected image
-    (:meth:`~geosim.diagnose.model.ForwardModel.deterministic`: no noise realisation)."""
-    return _rss(inp.grey - grey(m.deterministic(inp.simulate)), halves)
+    (:meth:`~geosim.diagnose.model.ForwardModel.deterministic`: no noise realisation;
+    rendered as one band, :func:`~geosim.diagnose.grey_render.grey_expected`)."""
+    return _rss(inp.grey - grey_expected(inp, m), halves)
 
 
 def coherent_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
@@ -267,7 +269,7 @@ def coherent_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup,
             for j, pr in enumerate(steps):
                 for k, pc in enumerate(steps):
                     mp = m1.without(native_phase_px=(float(pr), float(pc)))
-                    res[j, k] = inp.grey - grey(mp.deterministic(inp.simulate))
+                    res[j, k] = inp.grey - grey_expected(inp, mp)
                     resampled.append((mp, _rss(res[j, k], halves)))
             for h, out in zip(halves, phased, strict=True):
                 v, (pr, pc) = phase_harmonics(res[:, :, h], float(pitch))
@@ -323,8 +325,8 @@ def phase_mean(inp: Inputs, m: ForwardModel) -> np.ndarray:
     (:data:`MEAN_PHASE_STEPS` per axis): the resampling's roll-off without its aliases."""
     pitch = float(m.blur["resampling"]["native_pitch_px"])
     steps = np.arange(MEAN_PHASE_STEPS) * pitch / MEAN_PHASE_STEPS
-    return np.mean([grey(m.without(native_phase_px=(float(a), float(b))).deterministic(
-        inp.simulate)) for a in steps for b in steps], axis=0)
+    return np.mean([grey_expected(inp, m.without(native_phase_px=(float(a), float(b))))
+                    for a in steps for b in steps], axis=0)
 
 
 def aliasing_dchi2(inp: Inputs, scan: CoherentScan) -> list[float]:
@@ -401,7 +403,7 @@ def refine_resampled(inp: Inputs, start: ForwardModel, mask: np.ndarray) -> Forw
     r = minimize(cost, x0, method="Nelder-Mead",
                  options={"maxfev": REFINE_EVALUATIONS, "initial_simplex": simplex,
                           "xatol": 1e-4, "fatol": 1e-3})
-    return build(r.x if r.fun <= cost(x0) else x0)
+    return build(r.x)   # x0 is a vertex of the simplex: r.x fits at least as well
 
 
 def coherent_resampling(inp: Inputs, model: ForwardModel, sel: BlurSelection,

@@ -18,9 +18,15 @@ does). Pure numerics, no I/O.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from geosim.physics.cubic import OPENCV_A, cubic_weights
+
+#: per-axis matrices kept (a pitch scan renders each native phase of an axis with every
+#: phase of the other axis, and both cubic kernels: the same matrices many times)
+AXIS_CACHE = 64
 
 __all__ = ["native_edges", "native_area", "native_area_dct", "native_to_product",
            "render_through_native"]
@@ -111,19 +117,22 @@ def native_area_dct(coef: np.ndarray, fine_shape: tuple[int, int], phi: int,
     ``fine_shape``: (rows, cols) of the fine image, pixels; the scene is its first
     (rows // phi) · phi × (cols // phi) · phi pixels."""
     n_r, n_c = int(fine_shape[0]), int(fine_shape[1])
-    rows, cols = n_r // phi, n_c // phi
-    er = native_edges(rows, native_pitch_px, phase_px[0])
-    ec = native_edges(cols, native_pitch_px, phase_px[1])
-    mr = _dct_box_matrix(np.clip(er * phi, 0.0, rows * phi), n_r, coef.shape[-2])
-    mc = _dct_box_matrix(np.clip(ec * phi, 0.0, cols * phi), n_c, coef.shape[-1])
-    return mr @ coef @ mc.T, _centres(er), _centres(ec)
+    mr, cr = _axis_box(n_r, phi, float(native_pitch_px), float(phase_px[0]), coef.shape[-2])
+    mc, cc = _axis_box(n_c, phi, float(native_pitch_px), float(phase_px[1]), coef.shape[-1])
+    return mr @ coef @ mc.T, cr, cc
 
 
-def _cubic_weights(centres: np.ndarray, n_out: int, a: float) -> np.ndarray:
-    """(n_out, n_in) cubic-convolution weights from samples at ``centres`` (evenly
-    spaced, product-pixel coordinates) to product pixel centres j + 0.5."""
-    p = centres[1] - centres[0] if len(centres) > 1 else 1.0
-    return cubic_weights((np.arange(n_out) + 0.5 - centres[0]) / p, len(centres), a)
+@lru_cache(maxsize=AXIS_CACHE)
+def _axis_box(n: int, phi: int, pitch_px: float, phase_px: float, n_coef: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(:func:`_dct_box_matrix` of one axis of ``n`` fine pixels, the native centres),
+    read-only: cached, shared by every band and render at this pitch and phase."""
+    n_px = n // phi
+    edges = native_edges(n_px, pitch_px, phase_px)
+    out = (_dct_box_matrix(np.clip(edges * phi, 0.0, n_px * phi), n, n_coef), _centres(edges))
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 def native_to_product(native: np.ndarray, centres_row: np.ndarray, centres_col: np.ndarray,
@@ -133,6 +142,23 @@ def native_to_product(native: np.ndarray, centres_row: np.ndarray, centres_col: 
     wr = _cubic_weights(centres_row, shape[0], cubic_a)
     wc = _cubic_weights(centres_col, shape[1], cubic_a)
     return wr @ native @ wc.T
+
+
+def _cubic_weights(centres: np.ndarray, n_out: int, a: float) -> np.ndarray:
+    """(n_out, n_in) cubic-convolution weights from samples at ``centres`` (evenly
+    spaced, product-pixel coordinates) to product pixel centres j + 0.5; kept (a native
+    grid's first centre, spacing and count determine them), read-only."""
+    p = float(centres[1] - centres[0]) if len(centres) > 1 else 1.0
+    return _cubic_weights_of(float(centres[0]), p, len(centres), int(n_out), float(a))
+
+
+@lru_cache(maxsize=AXIS_CACHE)
+def _cubic_weights_of(first_px: float, pitch_px: float, n_in: int, n_out: int, a: float
+                      ) -> np.ndarray:
+    """:func:`_cubic_weights` from ``n_in`` centres ``first_px + k · pitch_px``."""
+    w = cubic_weights((np.arange(n_out) + 0.5 - first_px) / pitch_px, n_in, a)
+    w.setflags(write=False)
+    return w
 
 
 def render_through_native(fine: np.ndarray, phi: int, native_pitch_px: float, *,

@@ -1,0 +1,58 @@
+"""The grey level of a forward model's expected image, rendered as one band.
+
+Before compression, everything :class:`geosim.diagnose.model.ForwardModel` does to the UAV
+image is linear and the same in every band (optics, sampling, the blurs, a resampling's
+native grid, the move onto the real scene, the seam's factor), then affine per band (haze,
+colour response) plus an additive layer (moved objects). The luma of the result is
+therefore the one-band render of the UAV image weighted by luma weight × band gain, plus
+a constant image (the offsets' and the objects' luma). Stages that score only the grey
+level over many candidate models (the coherent resampling scan, the isotropic pixel scan)
+render one band where the full model renders three, and move it once where a local warp
+(rotation, scale) would move three.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from geosim.diagnose.model import ForwardModel
+from geosim.diagnose.stage_inputs import Inputs, grey
+from geosim.physics.radiometry import LUMA_WEIGHTS
+
+__all__ = ["grey_expected", "luma_weights"]
+
+
+def luma_weights(n_bands: int) -> np.ndarray:
+    """Per-band weights of :func:`geosim.physics.radiometry.luma` (R, G, B first; extra
+    bands 0; a single band 1)."""
+    if n_bands == 1:
+        return np.ones(1)
+    if n_bands < 3:
+        raise ValueError(f"luma needs 1 or ≥3 bands (R, G, B first), got {n_bands}")
+    return np.concatenate([LUMA_WEIGHTS, np.zeros(n_bands - 3)])
+
+
+def grey_expected(inp: Inputs, m: ForwardModel) -> np.ndarray:
+    """``grey(m.deterministic(inp.simulate))`` (DN, rows × cols), rendered as one band
+    where the simulator can (:meth:`geosim.diagnose.simulate.QSimulator.weighted`; equal
+    up to rounding); the full render's luma otherwise (JPEG, which is not linear, or a
+    simulator without the UAV image)."""
+    weighted = getattr(inp.simulate, "weighted", None)
+    uav = getattr(inp.simulate, "uav", None)
+    if m.compression is not None or not callable(weighted) or uav is None:
+        return grey(m.deterministic(inp.simulate))
+    n_bands = uav.shape[0] if uav.ndim == 3 else 1
+    w = luma_weights(n_bands)
+    gain, offset = (m.radiometry.gain_offset(n_bands) if m.radiometry is not None
+                    else (np.ones(n_bands), np.zeros(n_bands)))
+    one = weighted(tuple(w * gain))
+    if one is None:
+        return grey(m.deterministic(inp.simulate))
+    reg = m.registration
+    if reg.presampled is not None:
+        reg = replace(reg, presampled=one.shifted(reg.shift_px))
+    out = m.without(radiometry=None, objects=None, registration=reg).deterministic(one)[0]
+    out = out + float(np.dot(w, offset))
+    return out + grey(m.objects.layer) if m.objects is not None else out
