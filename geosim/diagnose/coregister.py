@@ -291,8 +291,8 @@ def warp_by_field(image: np.ndarray, d_col: np.ndarray, d_row: np.ndarray) -> np
     from scipy import ndimage
 
     arr = np.asarray(image, float)
-    if arr.ndim == 3:
-        return np.stack([warp_by_field(b, d_col, d_row) for b in arr])
-    rows, cols = np.mgrid[0:arr.shape[0], 0:arr.shape[1]].astype(float)
-    return ndimage.map_coordinates(arr, [rows - d_row, cols - d_col], order=3, mode="reflect",
-                                   prefilter=True)
+    rows, cols = np.mgrid[0:arr.shape[-2], 0:arr.shape[-1]].astype(float)
+    at = np.stack([rows - d_row, cols - d_col])     # once for every band
+    out = [ndimage.map_coordinates(b, at, order=3, mode="reflect", prefilter=True)
+           for b in (arr if arr.ndim == 3 else [arr])]
+    return np.stack(out) if arr.ndim == 3 else out[0]
