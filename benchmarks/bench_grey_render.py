@@ -37,13 +37,12 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-
-from generator_cases import no_registration, scene_inputs  # noqa: E402
+sys.path.insert(0, str(ROOT))
 
 from geosim.diagnose.grey_render import grey_expected  # noqa: E402
 from geosim.diagnose.model import ForwardModel, RadiometryChoice  # noqa: E402
 from geosim.diagnose.stage_inputs import grey  # noqa: E402
+from tests.generator_cases import no_registration, scene_inputs  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "bench_grey_render.json"
 TRUTH = {"haze": {"transmission": [0.9, 0.85, 0.8], "path_radiance_dn": [6.0, 8.0, 12.0]},

@@ -16,10 +16,10 @@ import diagnose_generator as gen  # noqa: E402
 
 from geosim.diagnose.engine import Diagnosis, diagnose_arrays  # noqa: E402
 from geosim.diagnose.grids import calibrate_q_lv  # noqa: E402
-from geosim.diagnose.model import Registration  # noqa: E402
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.diagnose.stage_inputs import Inputs, make_inputs  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
+from tests.helpers import no_registration  # noqa: E402, F401 (re-exported)
 
 
 def render_scene(truth: dict, q: float, seed: int, sat_px: int = 96,
@@ -38,12 +38,6 @@ def scene_inputs(truth: dict, q: float, seed: int, sat_px: int = 96
     uav, real = render_scene(truth, q, seed, sat_px)
     sim = QSimulator(uav, phi=gen.PHI, q_min=0.6)
     return make_inputs(real, sim, q, None, None, None, 0.5), real
-
-
-def no_registration() -> Registration:
-    """A registration that leaves the simulation where it is."""
-    return Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
-                        shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
 
 
 def diagnose_scene(truth: dict, q: float, seed: int, sat_px: int = 96,

@@ -94,3 +94,12 @@ def gdal_cache_bytes() -> int | None:
     lib = ctypes.CDLL(path)
     lib.GDALGetCacheMax64.restype = ctypes.c_int64
     return int(lib.GDALGetCacheMax64())
+
+
+def no_registration():
+    """A diagnosis :class:`~geosim.diagnose.model.Registration` that leaves the simulation
+    where it is (no shift, no field)."""
+    from geosim.diagnose.model import Registration
+
+    return Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
+                        shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))

@@ -10,7 +10,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from generator_cases import no_registration, scene_inputs
 
 from geosim.diagnose.grey_render import grey_expected, luma_weights
 from geosim.diagnose.model import CompressionFit, ForwardModel, RadiometryChoice
@@ -19,6 +18,7 @@ from geosim.diagnose.simulate import QSimulator
 from geosim.diagnose.stage_inputs import grey
 from geosim.diagnose.stage_objects import SceneObjects
 from geosim.physics.radiometry import luma
+from tests.generator_cases import no_registration, scene_inputs
 
 SAT_PX = 48
 

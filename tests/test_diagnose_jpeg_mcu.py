@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from geosim.diagnose.effects import get_effect
-from geosim.diagnose.model import CompressionFit, ForwardModel, Registration
+from geosim.diagnose.model import CompressionFit, ForwardModel
 from geosim.diagnose.select import MIN_DELTA_BIC
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.diagnose.stage_jpeg import mcu_grid
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
-from tests.helpers import area_averaged_rgb, pillow_jpeg
+from tests.helpers import area_averaged_rgb, no_registration, pillow_jpeg
 
 SIDE_PX = 128
 #: the scene is cut from a larger encoded image at these (row, col) offsets
@@ -92,8 +92,7 @@ def _inputs(real: np.ndarray, model_img: np.ndarray) -> Inputs:
 
 
 def _model(compression: CompressionFit | None) -> ForwardModel:
-    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
-                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+    reg = no_registration()
     return ForwardModel(q=1.0, blur={}, registration=reg, compression=compression)
 
 

@@ -5,14 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from geosim.diagnose.coregister import AffineEstimate
-from geosim.diagnose.model import CompressionFit, ForwardModel, NoiseEstimate, Registration
+from geosim.diagnose.model import CompressionFit, ForwardModel, NoiseEstimate
 from geosim.diagnose.select import clearly_present, plausible
 from geosim.diagnose.stage_register import field_sigma_px
-
-
-def _reg() -> Registration:
-    return Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
-                        shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+from tests.helpers import no_registration
 
 
 def test_compression_acts_last_on_the_noisy_rounded_product():
@@ -21,7 +17,7 @@ def test_compression_acts_last_on_the_noisy_rounded_product():
     comp = CompressionFit(quality=40, offset_px=(0, 0), test={})
     noise = NoiseEstimate(gain_dn=0.0, read_var_dn2=9.0, gain_sigma=0.0, read_sigma=0.0,
                           white_var_dn2=9.0, whiteness=1.0, claimed=True, quantization_dn2=0.0)
-    m = ForwardModel(q=1.0, blur={}, registration=_reg(), compression=comp, noise=noise)
+    m = ForwardModel(q=1.0, blur={}, registration=no_registration(), compression=comp, noise=noise)
     sim = lambda q: img  # noqa: E731
     got = m.delivered(sim, np.random.default_rng(5), quantized=True)
     # by hand: noise on the sharp product, whole DN, then JPEG

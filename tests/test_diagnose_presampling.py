@@ -24,12 +24,12 @@ from geosim.diagnose.fit import build_spectral_data, fit_transfer  # noqa: E402
 from geosim.diagnose.model import (  # noqa: E402
     ForwardModel,
     NoiseEstimate,
-    Registration,
     blur_apply,
 )
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
 from geosim.diagnose.spectra import block_origins  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
+from tests.helpers import no_registration  # noqa: E402
 
 
 def _ground(seed: int, sat_px: int) -> np.ndarray:
@@ -148,8 +148,7 @@ def test_native_phase_shift_flips_the_alias_not_the_passband():
     (k + ½)·pitch of frequency f, reconstructed at f − 1/pitch): what a native grid of
     unknown phase changes, and nothing else."""
     n_sat, phi = 128, gen.PHI
-    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
-                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+    reg = no_registration()
     w = np.hanning(n_sat - 32)
 
     def spectra(cycles: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -192,8 +191,7 @@ def test_noise_realisations_render_the_model_once_with_the_same_arrays():
     """ForwardModel.delivered_realisations gives the arrays separate ``delivered`` calls
     give (the deterministic part rendered once, not modified by the noise)."""
     sim = QSimulator(_ground(6, 48), phi=gen.PHI, q_min=0.5)
-    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
-                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+    reg = no_registration()
     noise = NoiseEstimate(gain_dn=0.2, read_var_dn2=4.0, gain_sigma=0.0, read_sigma=0.0,
                           white_var_dn2=20.0, whiteness=1.0, claimed=True, quantization_dn2=0.0)
     model = ForwardModel(q=1.5, blur={"resampling": {"native_pitch_px": 1.4}},

@@ -19,7 +19,7 @@ import pytest
 
 from geosim.diagnose.detection_limits import combine_limits, limits_markdown
 from geosim.diagnose.fit import TransferFit
-from geosim.diagnose.model import CompressionFit, ForwardModel, Registration
+from geosim.diagnose.model import CompressionFit, ForwardModel
 from geosim.diagnose.resampling_limit import (
     KERNELS,
     PITCHES,
@@ -38,6 +38,7 @@ from geosim.diagnose.stage_withdraw import (
     optics_pass_native_nyquist,
 )
 from geosim.diagnose.truth_compare import _limit_note
+from tests.helpers import no_registration
 
 
 def test_predicted_gain_is_the_drop_of_the_rms():
@@ -214,8 +215,7 @@ def test_combined_over_flights():
 
 
 def _resampled_under_jpeg(q: float, pitch_px: float) -> ForwardModel:
-    reg = Registration(estimate=None, affine=None, applied=False,  # type: ignore[arg-type]
-                       shift_px=(0.0, 0.0), whole_px=(0.0, 0.0))
+    reg = no_registration()
     return ForwardModel(q=q, blur={"resampling": {"native_pitch_px": pitch_px,
                                                   "cubic_a": -0.75}},
                         registration=reg,
