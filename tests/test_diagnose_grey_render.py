@@ -11,13 +11,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from geosim.diagnose.grey_render import grey_expected, luma_weights
+from geosim.diagnose.grey_render import grey_expected
 from geosim.diagnose.model import CompressionFit, ForwardModel, RadiometryChoice
 from geosim.diagnose.seam import GainStep
 from geosim.diagnose.simulate import QSimulator
 from geosim.diagnose.stage_inputs import grey
 from geosim.diagnose.stage_objects import SceneObjects
-from geosim.physics.radiometry import luma
+from geosim.physics.radiometry import luma, luma_weights
 from tests.generator_cases import no_registration, scene_inputs
 
 SAT_PX = 48

@@ -19,19 +19,9 @@ import numpy as np
 
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.stage_inputs import Inputs, grey
-from geosim.physics.radiometry import LUMA_WEIGHTS
+from geosim.physics.radiometry import luma_weights
 
-__all__ = ["grey_expected", "luma_weights"]
-
-
-def luma_weights(n_bands: int) -> np.ndarray:
-    """Per-band weights of :func:`geosim.physics.radiometry.luma` (R, G, B first; extra
-    bands 0; a single band 1)."""
-    if n_bands == 1:
-        return np.ones(1)
-    if n_bands < 3:
-        raise ValueError(f"luma needs 1 or ≥3 bands (R, G, B first), got {n_bands}")
-    return np.concatenate([LUMA_WEIGHTS, np.zeros(n_bands - 3)])
+__all__ = ["grey_expected"]
 
 
 def grey_expected(inp: Inputs, m: ForwardModel) -> np.ndarray:

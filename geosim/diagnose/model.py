@@ -20,6 +20,7 @@ from geosim.diagnose.seam import GainStep
 from geosim.diagnose.stage_objects import SceneObjects
 from geosim.physics import otf
 from geosim.physics.geometry import fourier_shift
+from geosim.physics.radiometry import apply_gain_offset, per_band_values
 
 __all__ = ["Registration", "CompressionFit", "RadiometryChoice", "NoiseEstimate",
            "ForwardModel", "Claim", "blur_apply", "NON_LSI"]
@@ -135,26 +136,20 @@ class RadiometryChoice:
 
     def apply(self, img: np.ndarray) -> np.ndarray:
         """``img`` (bands first, DN) with the claimed effect applied; unchanged if none."""
-        if self.name == "haze":
-            return get_effect("haze").apply(img, **self.params)
-        if self.name == "colour_response":
-            out = img * np.asarray(self.params["gain"])[:, None, None]
-            if "offset_dn" in self.params:
-                out = out + np.asarray(self.params["offset_dn"])[:, None, None]
-            return out
-        return img
+        if self.name not in ("haze", "colour_response"):
+            return img
+        gain, offset = self.gain_offset(img.shape[0])
+        return apply_gain_offset(img, gain=gain, offset_dn=offset)
 
     def gain_offset(self, n_bands: int) -> tuple[np.ndarray, np.ndarray]:
-        """(gain, offset DN) per band of ``n_bands``: :meth:`apply` is ``gain · x + offset``."""
-        gain, offset = np.ones(n_bands), np.zeros(n_bands)
-        if self.name == "haze":
-            gain, offset = (np.broadcast_to(np.asarray(self.params[k], float), (n_bands,))
-                            for k in ("transmission", "path_radiance_dn"))
-        elif self.name == "colour_response":
-            gain = np.broadcast_to(np.asarray(self.params["gain"], float), (n_bands,))
-            if "offset_dn" in self.params:
-                offset = np.broadcast_to(np.asarray(self.params["offset_dn"], float), (n_bands,))
-        return gain, offset
+        """(gain, offset DN) per band of ``n_bands``: :meth:`apply` is ``gain · x + offset``
+        (haze: transmission and path radiance; a colour response's offset 0 unless fitted)."""
+        gain_key, offset_key = (("transmission", "path_radiance_dn") if self.name == "haze"
+                                else ("gain", "offset_dn"))
+        gain = self.params.get(gain_key, 1.0) if self.name is not None else 1.0
+        offset = self.params.get(offset_key, 0.0) if self.name is not None else 0.0
+        return (per_band_values(gain, n_bands, gain_key),
+                per_band_values(offset, n_bands, offset_key))
 
 
 @dataclass

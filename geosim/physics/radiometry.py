@@ -14,13 +14,19 @@ import numpy as np
 from geosim.physics.cubic import OPENCV_A, cubic_resize
 
 
-def _per_band(values: Sequence[float] | np.ndarray, bands: int, name: str) -> np.ndarray:
+def per_band_values(values: Sequence[float] | np.ndarray, bands: int, name: str) -> np.ndarray:
+    """``values`` as one float per band, (bands,): a single value repeated; any other count
+    than 1 or ``bands`` is an error naming ``name``."""
     v = np.asarray(values, dtype=float).reshape(-1)
     if v.size == 1:
         v = np.repeat(v, bands)
     if v.size != bands:
         raise ValueError(f"{name}: need 1 or {bands} values, got {v.size}")
-    return v[:, np.newaxis, np.newaxis]
+    return v
+
+
+def _per_band(values: Sequence[float] | np.ndarray, bands: int, name: str) -> np.ndarray:
+    return per_band_values(values, bands, name)[:, np.newaxis, np.newaxis]
 
 
 def apply_gain_offset(image: np.ndarray, *, gain: Sequence[float] | np.ndarray,
@@ -109,7 +115,20 @@ def luma(image: np.ndarray) -> np.ndarray:
         return img
     if img.shape[0] == 1:
         return img[0]
-    if img.shape[0] < 3:
-        raise ValueError(f"luma needs 1 or ≥3 bands (R, G, B first), got {img.shape[0]}")
+    _require_luma_bands(img.shape[0])
     wr, wg, wb = LUMA_WEIGHTS
     return wr * img[0] + wg * img[1] + wb * img[2]
+
+
+def luma_weights(n_bands: int) -> np.ndarray:
+    """Per-band weights of :func:`luma`, (n_bands,): R, G, B first, extra bands 0; a single
+    band 1."""
+    if n_bands == 1:
+        return np.ones(1)
+    _require_luma_bands(n_bands)
+    return np.concatenate([LUMA_WEIGHTS, np.zeros(n_bands - 3)])
+
+
+def _require_luma_bands(n_bands: int) -> None:
+    if n_bands < 3:
+        raise ValueError(f"luma needs 1 or ≥3 bands (R, G, B first), got {n_bands}")
