@@ -367,8 +367,8 @@ def luma(img: np.ndarray) -> np.ndarray:
 # 21's; 1704-1735: round 22's; 1736-1767: round 23's; 1768-1799: round 24's; 1800-1831:
 # round 25's; 1832-1863: round 26's; 1864-1895: round 27's; 1896-1927: round 28's;
 # 1928-1959: round 29's; 1960-1991: round 30's; 1992-2023: round 31's; 2024-2055: round
-# 32's; 2056-2087: round 33's; 2088-2119: round 34's; 2120-2151: round 35's, each seen in its round's final
-# report).
+# 32's; 2056-2087: round 33's; 2088-2119: round 34's; 2120-2151: round 35's, each seen in
+# its round's final report).
 VALIDATION_FIRST_SEED = 2152
 VALIDATION_LAST_SEED = 2183
 
