@@ -29,8 +29,12 @@ def grey_expected(inp: Inputs, m: ForwardModel) -> np.ndarray:
     where the simulator can (:meth:`geosim.diagnose.simulate.QSimulator.weighted`; equal
     up to rounding); the full render's luma otherwise (JPEG, which is not linear, or a
     simulator without the UAV image)."""
-    weighted = getattr(inp.simulate, "weighted", None)
-    uav = getattr(inp.simulate, "uav", None)
+    reg = m.registration
+    # a field's move is in its warped simulator (Registration.fine_source)
+    source = reg.presampled if reg.before_sampling and reg.field_px is not None \
+        else inp.simulate
+    weighted = getattr(source, "weighted", None)
+    uav = getattr(source, "uav", None)
     if m.compression is not None or not callable(weighted) or uav is None:
         return grey(m.deterministic(inp.simulate))
     n_bands = uav.shape[0] if uav.ndim == 3 else 1
@@ -40,9 +44,9 @@ def grey_expected(inp: Inputs, m: ForwardModel) -> np.ndarray:
     one = weighted(tuple(w * gain))
     if one is None:
         return grey(m.deterministic(inp.simulate))
-    reg = m.registration
     if reg.presampled is not None:
-        reg = replace(reg, presampled=one.shifted(reg.shift_px))
+        reg = replace(reg, presampled=one if reg.field_px is not None
+                      else one.shifted(reg.shift_px))
     out = m.without(radiometry=None, objects=None, registration=reg).deterministic(one)[0]
     out = out + float(np.dot(w, offset))
     return out + grey(m.objects.layer) if m.objects is not None else out

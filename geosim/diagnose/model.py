@@ -48,16 +48,33 @@ class Registration:
     whole_px: tuple[float, float]
     field_px: tuple[np.ndarray, np.ndarray] | None = None
     fill_idx: np.ndarray | None = None
-    #: ``presampled(q)``: the paper's model at q of the UAV image moved by ``shift_px``
-    #: on the fine grid, before optics and sampling (where a real misregistration acts);
-    #: used instead of moving the sampled simulation when given (a global shift only)
+    #: ``presampled(q)``: the paper's model at q of the UAV image moved on the fine grid,
+    #: before optics and sampling (where a real misregistration acts), by ``shift_px`` or,
+    #: with a field, by the field (then a simulator that keeps the moved image:
+    #: :meth:`geosim.diagnose.simulate.QSimulator.warped`); used instead of moving the
+    #: sampled simulation when given
     presampled: Callable[[float], np.ndarray] | None = None
+
+    @property
+    def before_sampling(self) -> bool:
+        """Whether the move is made on the fine grid, before the optics and sampling."""
+        return self.applied and self.presampled is not None
+
+    def fine_source(self, simulate: Any) -> tuple[Any, tuple[float, float]]:
+        """(simulator, shift_px): where renders made on the fine grid (blur variants, native
+        resamplings, alias parts) come out moved onto the real scene. A field's warped
+        simulator with no further shift; ``simulate`` with the global shift; ``simulate``
+        unmoved where the move is made after sampling (:meth:`move`)."""
+        if not self.before_sampling:
+            return simulate, (0.0, 0.0)
+        if self.field_px is not None:
+            return self.presampled, (0.0, 0.0)
+        return simulate, self.shift_px
 
     def simulation(self, simulate: Callable[[float], np.ndarray], q: float) -> np.ndarray:
         """The paper's model at ``q`` moved onto the real scene: moved before sampling when
         :attr:`presampled` is available, else the sampled simulation moved (:meth:`move`)."""
-        if (self.applied and self.field_px is None and self.presampled is not None
-                and q >= getattr(self.presampled, "q_min", 0.0)):
+        if self.before_sampling and q >= getattr(self.presampled, "q_min", 0.0):
             s = np.asarray(self.presampled(q), float)
             s = s[np.newaxis] if s.ndim == 2 else s
             return s[:, self.fill_idx[0], self.fill_idx[1]] if self.fill_idx is not None else s
@@ -229,17 +246,17 @@ class ForwardModel:
         simulator can."""
         lsi = {n: p for n, p in self.blur.items() if n not in NON_LSI}
         rest = {n: p for n, p in self.blur.items() if n in NON_LSI}
-        variant = getattr(simulate, "variant", None)
-        native = getattr(simulate, "native", None)
+        reg = self.registration
+        source, shift = reg.fine_source(simulate)
+        variant = getattr(source, "variant", None)
+        native = getattr(source, "native", None)
         resampled = "resampling" in rest and callable(native)
         if (not lsi and not resampled) or not callable(variant) \
                 or self.q < getattr(simulate, "q_min", 0.0):
             return self.sim_at(simulate, compressed=False), self.blur
-        reg = self.registration
-        pre = reg.applied and reg.field_px is None and reg.presampled is not None
+        pre = reg.before_sampling
         key = tuple(sorted((n, tuple(sorted(p.items()))) for n, p in lsi.items()))
         tr = otf.compose(*lsi_transfers(lsi)) if lsi else None
-        shift = reg.shift_px if pre else (0.0, 0.0)
         s = None
         if resampled:
             # resampling rendered from the fine grid (native sampling of the optics' image)

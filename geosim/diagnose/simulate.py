@@ -19,7 +19,7 @@ from geosim.degrade.core import (
 from geosim.diagnose.alias_cells import cell_parts
 from geosim.physics import otf
 from geosim.physics.cubic import OPENCV_A
-from geosim.physics.geometry import fourier_shift
+from geosim.physics.geometry import AffineField, fourier_shift, warp_to_fine_grid
 from geosim.physics.native_grid import native_area_dct, native_to_product
 from geosim.physics.otf import TransferFunction
 from geosim.physics.radiometry import luma
@@ -71,6 +71,7 @@ class QSimulator:
         self._alias: tuple[object, dict[tuple[int, int], tuple[QSimulator, QSimulator]]] | None \
             = None
         self._weighted: tuple[tuple[float, ...], QSimulator] | None = None
+        self._warped: tuple[AffineField, QSimulator] | None = None
         if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
             self.uav = None
 
@@ -97,6 +98,25 @@ class QSimulator:
         (the caller then moves the sampled simulation).
         """
         return self.variant(shift_px=shift_px)
+
+    def warped(self, field: AffineField) -> QSimulator | None:
+        """The same simulator for the UAV image moved by a shift + rotation + scale
+        ``field`` (displacement in **satellite** pixels, affine in the satellite pixel
+        position: :func:`geosim.physics.geometry.affine_field`), the move made on the fine
+        grid before the optics and sampling, as :meth:`shifted` moves a global shift (the
+        UAV image warped once by a cubic spline on the fine grid, where the optics remove
+        what the spline gets wrong; warping every *sampled* simulation instead costs a warp
+        per render and moves its aliased content by the wrong phase). It keeps its image,
+        so its own :meth:`variant`, :meth:`native`, :meth:`weighted` and
+        :meth:`alias_simulators` render the moved scene; the last one is kept. ``None``
+        when this simulator keeps no image or the image has invalid pixels."""
+        if self.uav is None or (self.valid is not None and not np.all(self.valid)):
+            return None
+        if self._warped is None or self._warped[0] != field:
+            img = warp_to_fine_grid(self.uav, field, self.phi)
+            self._warped = (field, QSimulator(img.astype(np.float32), phi=self.phi,
+                                              valid=self.valid, q_min=self.q_min))
+        return self._warped[1]
 
     def variant(self, *, shift_px: tuple[float, float] = (0.0, 0.0),
                 transfer: TransferFunction | None = None, key: object = None

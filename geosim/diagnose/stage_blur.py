@@ -216,15 +216,16 @@ def split_alias_cells(inp: Inputs, model: ForwardModel, q_grid: np.ndarray
     scenes worse than none (round 29: 5 of the 7 JPEG rows at Q < 1.8 whose fit changed,
     e.g. spectral error 0.013 -> 0.061), so under JPEG the fits keep the sampled model."""
     reg = model.registration
-    cells = getattr(inp.simulate, "alias_simulators", None)
+    source, shift = reg.fine_source(inp.simulate)
+    cells = getattr(source, "alias_simulators", None)
     if (q_grid[0] >= ALIAS_Q_MAX or model.q >= SPLIT_Q_MAX or not callable(cells)
             or reg.fill_idx is not None or model.compression is not None):
         return None
-    pre = reg.applied and reg.field_px is None and reg.presampled is not None
-    sims = cells(reg.shift_px if pre else (0.0, 0.0))
+    sims = cells(shift)
     if sims is None:
         return None
-    finish = (lambda img: reg.move(img)[0]) if reg.applied and not pre else None
+    finish = (lambda img: reg.move(img)[0]) if reg.applied and not reg.before_sampling \
+        else None
     return alias_pieces(sims, q_grid, q_min=float(getattr(inp.simulate, "q_min", 0.0)),
                         finish=finish)
 

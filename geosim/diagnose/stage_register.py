@@ -16,7 +16,7 @@ from geosim.diagnose.coregister import (
 from geosim.diagnose.model import Registration
 from geosim.diagnose.select import MIN_DELTA_BIC
 from geosim.diagnose.stage_inputs import Inputs, grey
-from geosim.physics.geometry import fourier_shift
+from geosim.physics.geometry import affine_field, fourier_shift
 
 __all__ = ["coregister", "confirm_shift", "shift_is_clear", "unapplied", "field_sigma_px",
            "MIN_SHIFT_PX", "MIN_FIELD_PX"]
@@ -50,11 +50,15 @@ def coregister(inp: Inputs) -> Registration:
     if not inp.valid.all():
         fill_idx = ndimage.distance_transform_edt(~inp.valid, return_distances=False,
                                                   return_indices=True)
+    # the move is made on the UAV image before the optics and sampling, as the real
+    # misregistration acts (QSimulator.shifted, QSimulator.warped); where the simulator
+    # cannot (invalid UAV pixels), the sampled simulation is moved
     presampled = None
     shifted = getattr(inp.simulate, "shifted", None)
-    if applied and field_px is None and callable(shifted):
-        # a global shift is applied to the UAV image before the optics and sampling, as the
-        # real misregistration acts (see QSimulator.shifted)
+    warped = getattr(inp.simulate, "warped", None)
+    if field_px is not None and callable(warped):
+        presampled = warped(affine_field(*field_px))
+    elif applied and field_px is None and callable(shifted):
         presampled = shifted(est.shift_px)
     return Registration(estimate=est, affine=aff, applied=applied,
                         shift_px=est.shift_px if applied else (0.0, 0.0), whole_px=whole,
