@@ -115,12 +115,27 @@ def test_warped_simulator_renders_the_moved_scene(q):
     assert np.allclose(variant(q)[0], on_fine, atol=1e-3)
 
 
-def test_invalid_uav_pixels_fall_back_to_moving_the_sampled_simulation():
-    fine = _texture(320, 3)
+def test_invalid_uav_pixels_are_filled_before_the_fine_grid_renders():
+    """Invalid UAV pixels (a flight's nodata rim) are filled as the paper's model fills
+    them, so the fine-grid renders exist; away from the rim they are the renders of the
+    complete image."""
+    fine = _texture(640, 3)
     valid = np.ones(fine.shape, bool)
-    valid[:, :12] = False
-    sim = QSimulator(fine[np.newaxis].astype(np.float32), phi=PHI, valid=valid, q_min=0.6)
-    assert sim.warped(affine_field(*_field_maps((32, 32)))) is None
+    valid[:, :40] = False                       # 4 satellite columns
+    holed = np.where(valid, fine, 0.0)[np.newaxis].astype(np.float32)
+    sim = QSimulator(holed, phi=PHI, valid=valid, q_min=0.6)
+    whole = QSimulator(fine[np.newaxis].astype(np.float32), phi=PHI, q_min=0.6)
+    field = affine_field(*_field_maps((64, 64)))
+    smear = {"transfer": lambda fy, fx: np.sinc(1.5 * fx), "key": "smear 1.5 px"}
+    far = (slice(8, -8), slice(16, -8))          # ≥ 12 satellite px from the rim
+    for a, b in ((sim.warped(field), whole.warped(field)),
+                 (sim.variant(**smear), whole.variant(**smear)),
+                 (sim.variant(shift_px=(0.3, -0.2)), whole.variant(shift_px=(0.3, -0.2)))):
+        assert a is not None
+        assert np.abs(a(1.2)[0] - b(1.2)[0])[far].max() < 1e-3 * fine.std()
+    native = sim.native(1.2, 1.4)
+    assert native is not None
+    assert np.abs(native[0] - whole.native(1.2, 1.4)[0])[far].max() < 1e-3 * fine.std()
 
 
 def test_coregister_moves_a_rotated_scene_on_the_fine_grid():

@@ -73,8 +73,9 @@ def test_grey_render_equals_luma_of_the_full_render(scene, name: str) -> None:
 
 
 def test_grey_render_with_invalid_pixels_and_under_jpeg(scene) -> None:
-    """Invalid UAV pixels: the simulators fall back to the paper model on the sampled grid
-    (masked), still one band; JPEG is not linear: the full render's luma, exactly."""
+    """Invalid UAV pixels: filled as the paper's model fills them (linear, so the one-band
+    render still equals the three-band luma); JPEG is not linear: the full render's luma,
+    exactly."""
     uav = np.asarray(scene.simulate.uav)
     valid = np.ones(uav.shape[-2:], bool)       # on the UAV's fine grid
     valid[:60, :90] = False

@@ -14,6 +14,7 @@ from geosim.degrade.core import (
     SpectralDegrader,
     dct_coefficients,
     degrade_array,
+    fill_invalid,
     optics_otf_below_cutoff,
 )
 from geosim.diagnose.alias_cells import cell_parts
@@ -72,8 +73,28 @@ class QSimulator:
             = None
         self._weighted: tuple[tuple[float, ...], QSimulator] | None = None
         self._warped: tuple[AffineField, QSimulator] | None = None
+        #: the UAV image with its invalid pixels filled (float32), where it has any
+        self._filled: np.ndarray | None = None
         if not keep_image:  # only the degrader's truncated coefficients (variants: memory)
             self.uav = None
+
+    def _complete(self) -> np.ndarray:
+        """The UAV image (float64) as the paper's model degrades it: invalid pixels filled
+        by :func:`~geosim.degrade.core.fill_invalid`, as
+        :class:`~geosim.degrade.core.SpectralDegrader` fills them (kept once made)."""
+        if self.valid is None or np.all(self.valid):
+            return np.asarray(self.uav, dtype=float)
+        if self._filled is None:
+            self._filled = fill_invalid(self.uav, self.valid)
+        return np.asarray(self._filled, dtype=float)
+
+    def _moved_valid(self) -> np.ndarray | None:
+        """The valid mask of a simulator of this image moved or filtered on the fine grid:
+        this one's where it is all valid; None (complete) where the invalid pixels were
+        filled — the move carries filled values across the mask, and the caller fills the
+        invalid product pixels from the nearest valid ones
+        (:attr:`~geosim.diagnose.model.Registration.fill_idx`)."""
+        return self.valid if self.valid is None or np.all(self.valid) else None
 
     def __call__(self, q: float) -> np.ndarray:
         key = round(float(q), 4)
@@ -110,12 +131,12 @@ class QSimulator:
         so its own :meth:`variant`, :meth:`native`, :meth:`weighted` and
         :meth:`alias_simulators` render the moved scene; the last one is kept. ``None``
         when this simulator keeps no image or the image has invalid pixels."""
-        if self.uav is None or (self.valid is not None and not np.all(self.valid)):
+        if self.uav is None:
             return None
         if self._warped is None or self._warped[0] != field:
-            img = warp_to_fine_grid(self.uav, field, self.phi)
+            img = warp_to_fine_grid(self._complete(), field, self.phi)
             self._warped = (field, QSimulator(img.astype(np.float32), phi=self.phi,
-                                              valid=self.valid, q_min=self.q_min))
+                                              valid=self._moved_valid(), q_min=self.q_min))
         return self._warped[1]
 
     def variant(self, *, shift_px: tuple[float, float] = (0.0, 0.0),
@@ -131,13 +152,13 @@ class QSimulator:
         :data:`VARIANT_CACHE` variants are kept). ``None`` when the UAV image has invalid
         pixels (the caller then works on the sampled simulation).
         """
-        if self.uav is None or (self.valid is not None and not np.all(self.valid)):
+        if self.uav is None:
             return None
         ck = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6), key)
         if ck in self._variants:
             return self._variants[ck]
-        img = self._moved_filtered(np.asarray(self.uav, dtype=float), shift_px, transfer)
-        out = QSimulator(img.astype(np.float32), phi=self.phi, valid=self.valid,
+        img = self._moved_filtered(self._complete(), shift_px, transfer)
+        out = QSimulator(img.astype(np.float32), phi=self.phi, valid=self._moved_valid(),
                          q_min=self.q_min, keep_image=False)
         if len(self._variants) >= VARIANT_CACHE:
             self._variants.pop(next(iter(self._variants)))
@@ -168,12 +189,12 @@ class QSimulator:
         paper model at Q is the part of the grey simulation that sampling folds from that
         cell. ``None`` where :meth:`variant` gives none (no image kept, invalid pixels).
         The last shift's are kept."""
-        if self.uav is None or (self.valid is not None and not np.all(self.valid)):
+        if self.uav is None:
             return None
         key = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6))
         if self._alias is not None and self._alias[0] == key:
             return self._alias[1]
-        fine = self._moved_filtered(luma(np.asarray(self.uav, float)), shift_px, None)
+        fine = self._moved_filtered(luma(self._complete()), shift_px, None)
         sims = {c: tuple(QSimulator(part[np.newaxis].astype(np.float32), phi=self.phi,
                                     q_min=self.q_min, keep_image=False)
                          for part in (im.real, im.imag))
@@ -207,14 +228,14 @@ class QSimulator:
         Resampling the *sampled* simulation instead misses the aliasing the native
         sampling makes of content above the product Nyquist (Q ≲ 1.5). ``None`` when
         the simulator keeps no image or the image has invalid pixels. Bands first, DN, float64."""
-        if self.uav is None or (self.valid is not None and not np.all(self.valid)):
+        if self.uav is None:
             return None
         moved_key = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6), key)
         ck = (round(float(q), 4), *moved_key)
         if self._native_fine is None or self._native_fine[0] != ck:
             if self._native_coef is None or self._native_coef[0] != moved_key:
                 # the moved, filtered fine image's DCT kept: scans refit Q pitch by pitch
-                img = np.asarray(self.uav, dtype=float)
+                img = self._complete()
                 img = self._moved_filtered(img[np.newaxis] if img.ndim == 2 else img,
                                            shift_px, transfer)
                 self._native_coef = (moved_key, dct_coefficients(img))
