@@ -115,8 +115,9 @@ class QSimulator:
         sampling, where a real misregistration acts. Moving the sampled simulation instead
         is not the same when the optics pass content above the satellite Nyquist (Q ≲ 1.2):
         the aliased part then moves by a different phase, loses its coherence with the
-        scene and looks like blur and noise. ``None`` when the UAV image has invalid pixels
-        (the caller then moves the sampled simulation).
+        scene and looks like blur and noise. Invalid UAV pixels are filled first
+        (:meth:`_complete`). ``None`` when this simulator keeps no image (the caller then
+        moves the sampled simulation).
         """
         return self.variant(shift_px=shift_px)
 
@@ -129,8 +130,9 @@ class QSimulator:
         what the spline gets wrong; warping every *sampled* simulation instead costs a warp
         per render and moves its aliased content by the wrong phase). It keeps its image,
         so its own :meth:`variant`, :meth:`native`, :meth:`weighted` and
-        :meth:`alias_simulators` render the moved scene; the last one is kept. ``None``
-        when this simulator keeps no image or the image has invalid pixels."""
+        :meth:`alias_simulators` render the moved scene; the last one is kept. Invalid UAV
+        pixels are filled first (:meth:`_complete`). ``None`` when this simulator keeps no
+        image."""
         if self.uav is None:
             return None
         if self._warped is None or self._warped[0] != field:
@@ -149,8 +151,9 @@ class QSimulator:
         same blur, acting before sampling, keeps out of the real scene (Q ≲ 1.5).
 
         ``key``: a hashable description of ``transfer`` for the cache (the last
-        :data:`VARIANT_CACHE` variants are kept). ``None`` when the UAV image has invalid
-        pixels (the caller then works on the sampled simulation).
+        :data:`VARIANT_CACHE` variants are kept). Invalid UAV pixels are filled first
+        (:meth:`_complete`). ``None`` when this simulator keeps no image (the caller then
+        works on the sampled simulation).
         """
         if self.uav is None:
             return None
@@ -187,7 +190,7 @@ class QSimulator:
         the real and the imaginary part of the cell's share of the grey UAV image moved by
         ``shift_px`` (satellite pixels, on the fine grid as :meth:`variant` moves it): their
         paper model at Q is the part of the grey simulation that sampling folds from that
-        cell. ``None`` where :meth:`variant` gives none (no image kept, invalid pixels).
+        cell. ``None`` where :meth:`variant` gives none (no image kept).
         The last shift's are kept."""
         if self.uav is None:
             return None
@@ -226,8 +229,9 @@ class QSimulator:
         convolution (kernel parameter ``cubic_a``) onto the product grid
         (:func:`geosim.physics.native_grid.render_through_native`).
         Resampling the *sampled* simulation instead misses the aliasing the native
-        sampling makes of content above the product Nyquist (Q ≲ 1.5). ``None`` when
-        the simulator keeps no image or the image has invalid pixels. Bands first, DN, float64."""
+        sampling makes of content above the product Nyquist (Q ≲ 1.5). Invalid UAV pixels
+        are filled first (:meth:`_complete`). ``None`` when the simulator keeps no image.
+        Bands first, DN, float64."""
         if self.uav is None:
             return None
         moved_key = (round(float(shift_px[0]), 6), round(float(shift_px[1]), 6), key)

@@ -327,7 +327,7 @@ def censored_blur(inp: Inputs, model: ForwardModel, sel: BlurSelection,
 
 def _renders_natively(inp: Inputs, q: float) -> bool:
     """Whether the simulator renders a resampling through its native grid at ``q`` (the
-    UAV image kept and valid everywhere: :meth:`~geosim.diagnose.simulate.QSimulator.native`)."""
+    UAV image kept: :meth:`~geosim.diagnose.simulate.QSimulator.native`)."""
     native = getattr(inp.simulate, "native", None)
     return callable(native) and native(q, 1.5) is not None
 

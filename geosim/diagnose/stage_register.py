@@ -52,7 +52,7 @@ def coregister(inp: Inputs) -> Registration:
                                                   return_indices=True)
     # the move is made on the UAV image before the optics and sampling, as the real
     # misregistration acts (QSimulator.shifted, QSimulator.warped); where the simulator
-    # cannot (invalid UAV pixels), the sampled simulation is moved
+    # cannot (it keeps no UAV image), the sampled simulation is moved
     presampled = None
     shifted = getattr(inp.simulate, "shifted", None)
     warped = getattr(inp.simulate, "warped", None)
