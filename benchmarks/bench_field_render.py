@@ -42,26 +42,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_grey_render import TRUTH, time_renders  # noqa: E402
+from bench_grey_render import TRUTH, field_registration, time_renders  # noqa: E402
 
 from geosim.diagnose.grey_render import grey_expected  # noqa: E402
 from geosim.diagnose.model import ForwardModel, Registration  # noqa: E402
 from geosim.physics.geometry import affine_field  # noqa: E402
-from tests.generator_cases import no_registration, scene_inputs  # noqa: E402
+from tests.generator_cases import scene_inputs  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "bench_field_render.json"
-
-
-def field_registration(shape: tuple[int, int]) -> Registration:
-    """Rotation 0.4° and scale 0.997 about the centre plus a shift (the sample site's
-    flights), applied after sampling (no moved simulator)."""
-    rows, cols = shape
-    rr, cc = np.mgrid[0:rows, 0:cols].astype(float)
-    t = np.radians(0.4)
-    x, y = cc - cols / 2, rr - rows / 2
-    return replace(no_registration(), applied=True, field_px=(
-        1.6 + (0.997 * np.cos(t) - 1) * x - 0.997 * np.sin(t) * y,
-        2.4 + 0.997 * np.sin(t) * x + (0.997 * np.cos(t) - 1) * y))
 
 
 def candidates(reg: Registration, n: int, kind: str) -> list[ForwardModel]:

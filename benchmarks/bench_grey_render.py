@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from geosim.diagnose.grey_render import grey_expected  # noqa: E402
-from geosim.diagnose.model import ForwardModel, RadiometryChoice  # noqa: E402
+from geosim.diagnose.model import ForwardModel, RadiometryChoice, Registration  # noqa: E402
 from geosim.diagnose.stage_inputs import grey  # noqa: E402
 from tests.generator_cases import no_registration, scene_inputs  # noqa: E402
 
@@ -49,16 +49,22 @@ TRUTH = {"haze": {"transmission": [0.9, 0.85, 0.8], "path_radiance_dn": [6.0, 8.
          "sensor_noise": {"gain_dn": 0.05, "read_var_dn2": 2.0}}
 
 
-def models(inp, n: int, warp: bool) -> list[ForwardModel]:
-    """``n`` candidates of a resampling scan: pitch 1.15-2.0 px, phases across it."""
-    rows, cols = inp.grey.shape
+def field_registration(shape: tuple[int, int]) -> Registration:
+    """Rotation 0.4° and scale 0.997 about the centre plus a shift (column, row), as the
+    sample site's flights, applied after sampling (no moved simulator)."""
+    rows, cols = shape
     rr, cc = np.mgrid[0:rows, 0:cols].astype(float)
     t = np.radians(0.4)
-    if warp:   # rotation and scale about the centre, plus a shift (column, row)
-        x, y = cc - cols / 2, rr - rows / 2
-        reg = replace(no_registration(), applied=True, field_px=(
-            1.6 + (0.997 * np.cos(t) - 1) * x - 0.997 * np.sin(t) * y,
-            2.4 + 0.997 * np.sin(t) * x + (0.997 * np.cos(t) - 1) * y))
+    x, y = cc - cols / 2, rr - rows / 2
+    return replace(no_registration(), applied=True, field_px=(
+        1.6 + (0.997 * np.cos(t) - 1) * x - 0.997 * np.sin(t) * y,
+        2.4 + 0.997 * np.sin(t) * x + (0.997 * np.cos(t) - 1) * y))
+
+
+def models(inp, n: int, warp: bool) -> list[ForwardModel]:
+    """``n`` candidates of a resampling scan: pitch 1.15-2.0 px, phases across it."""
+    if warp:
+        reg = field_registration(inp.grey.shape)
     else:
         reg = replace(no_registration(), applied=True, shift_px=(0.37, -0.61),
                       presampled=inp.simulate.shifted((0.37, -0.61)))

@@ -30,9 +30,7 @@ def grey_expected(inp: Inputs, m: ForwardModel) -> np.ndarray:
     up to rounding); the full render's luma otherwise (JPEG, which is not linear, or a
     simulator without the UAV image)."""
     reg = m.registration
-    # a field's move is in its warped simulator (Registration.fine_source)
-    source = reg.presampled if reg.before_sampling and reg.field_px is not None \
-        else inp.simulate
+    source, _ = reg.fine_source(inp.simulate)   # a field's move is in its warped simulator
     weighted = getattr(source, "weighted", None)
     uav = getattr(source, "uav", None)
     if m.compression is not None or not callable(weighted) or uav is None:
