@@ -25,6 +25,15 @@ the JPEG encoder and its chroma subsampling (Pillow 4:2:0, Pillow 4:4:4 or OpenC
 one choice of each, so the variants measure how its claims hold on forward models it was
 not written against.
 
+Real-flight form (``make_case(..., flight=True)``, ``diagnose_independent.py --flight``):
+the same cases as a surveyed flight delivers them (:func:`draw_flight`, a stream of its
+own): the UAV image covers a footprint (a square turned against the grid, its bounding box
+the scene, as the pipeline cuts a flight's window) and holds nodata (0) outside it, with a
+validity mask as a user's orthomosaic carries one; and a misregistration, where the case
+has one, is a rotation and scale about the scene's centre as well as the shift, applied
+on the fine grid with OpenCV's ``warpAffine`` (cubic). The satellite scene covers the
+whole window as before.
+
 Frequencies: cycles per fine pixel ``f``; on the product grid ``f * phi``.
 Directions: degrees clockwise from grid north (up), in [0, 180).
 """
@@ -397,6 +406,12 @@ VARIANT_CHOICES: dict[str, Any] = {"atmosphere_exponent": (1.0, 2.0),
                                    "interpolation": ("opencv_cubic", "pillow_keys"),
                                    "jpeg": ("pillow_420", "pillow_444", "opencv_422"),
                                    "shift": ("spline", "fourier")}
+#: what :func:`draw_flight` draws from: the footprint's turn against the grid (deg), and,
+#: for a misregistration, its rotation (deg, either sign) and scale's departure from 1
+#: (either sign)
+FLIGHT_RANGES: dict[str, tuple[float, float]] = {"footprint_deg": (-15.0, 15.0),
+                                                 "rotation_deg": (0.1, 0.5),
+                                                 "scale_dev": (0.0, 0.003)}
 
 
 def draw_variant(seed: int) -> dict[str, Any]:
@@ -409,6 +424,53 @@ def draw_variant(seed: int) -> dict[str, Any]:
             "interpolation": str(rng.choice(c["interpolation"])),
             "jpeg": str(rng.choice(c["jpeg"])),
             "shift": str(rng.choice(c["shift"]))}
+
+
+def draw_flight(seed: int) -> dict[str, Any]:
+    """How case ``seed`` looks as a surveyed flight (the real-flight form), from a random
+    stream of its own (``default_rng([seed, 2])``), so the case's effects and parameters
+    are the same with and without it: the footprint's turn (deg, clockwise), and the
+    rotation (deg, clockwise) and scale a misregistration adds to its shift."""
+    rng = np.random.default_rng([seed, 2])
+    r = FLIGHT_RANGES
+    turn = float(rng.uniform(*r["footprint_deg"]))
+    rot = float(rng.uniform(*r["rotation_deg"]) * rng.choice([-1.0, 1.0]))
+    scale = float(1.0 + rng.uniform(*r["scale_dev"]) * rng.choice([-1.0, 1.0]))
+    return {"footprint_deg": turn, "rotation_deg": rot, "scale": scale}
+
+
+def footprint_mask(n: int, flight: dict[str, Any]) -> np.ndarray:
+    """The flight's footprint on an ``n`` x ``n`` UAV window (True = imaged): a square
+    turned ``footprint_deg`` clockwise about the window's centre whose bounding box is the
+    window (as the pipeline cuts a flight's window, the bounding box of its imaged
+    pixels), so its corners touch the window's sides and the four triangles between are
+    nodata (OpenCV ``fillPoly``); imaged fraction 1 / (cos a + sin |a|)^2."""
+    a = np.radians(flight["footprint_deg"])
+    side = n / (np.cos(a) + abs(np.sin(a)))
+    h = side / 2.0
+    corners = np.array([[-h, -h], [h, -h], [h, h], [-h, h]])
+    # clockwise on the image (rows down): x' = x cos a - y sin a, y' = x sin a + y cos a
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    pts = corners @ rot.T + n / 2.0
+    mask = np.zeros((n, n), np.uint8)
+    cv2.fillPoly(mask, [np.round(pts).astype(np.int32)], 1)
+    return mask.astype(bool)
+
+
+def warp_fine(img: np.ndarray, shift_px: tuple[float, float], rotation_deg: float,
+              scale: float) -> np.ndarray:
+    """The ground moved by a rotation (deg, clockwise) and scale about the array's centre,
+    then a shift (column, row) in *product* pixels, on the fine grid (OpenCV
+    ``warpAffine``, cubic, mirrored edges)."""
+    n_r, n_c = img.shape[-2:]
+    centre = ((n_c - 1) / 2.0, (n_r - 1) / 2.0)
+    # OpenCV's positive angle turns counter-clockwise on the image
+    m = cv2.getRotationMatrix2D(centre, -rotation_deg, scale)
+    m[0, 2] += shift_px[0] * PHI
+    m[1, 2] += shift_px[1] * PHI
+    return np.stack([cv2.warpAffine(b.astype(np.float64), m, (n_c, n_r),
+                                    flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+                     for b in img])
 
 
 @dataclass
@@ -424,6 +486,18 @@ class Case:
     real: np.ndarray = field(repr=False)
     #: implementation choices (None: :data:`DEFAULT_VARIANT`)
     variant: dict[str, Any] | None = None
+    #: the real-flight form (:func:`draw_flight`; None: the whole window imaged)
+    flight: dict[str, Any] | None = None
+    #: the UAV image's validity (True = imaged; None: every pixel)
+    uav_valid: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def product_valid(self) -> np.ndarray | None:
+        """Product pixels whose PHI x PHI UAV pixels are all imaged (None: all)."""
+        if self.uav_valid is None:
+            return None
+        r, c = self.real.shape[-2:]
+        return self.uav_valid[:r * PHI, :c * PHI].reshape(r, PHI, c, PHI).all(axis=(1, 3))
 
     @property
     def split(self) -> str:
@@ -490,10 +564,12 @@ def draw_params(rng: np.random.Generator, name: str) -> dict[str, Any]:
 
 def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
            rng: np.random.Generator, *, margin_px: int,
-           variant: dict[str, Any] | None = None, noise_free: bool = False
-           ) -> tuple[np.ndarray, np.ndarray]:
+           variant: dict[str, Any] | None = None, noise_free: bool = False,
+           flight: dict[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(uav fine image, real product) for the window inside ``margin_px`` product pixels;
     ``variant``: implementation choices (:func:`draw_variant`; None: the default ones).
+    ``flight``: the real-flight form (:func:`draw_flight`): a misregistration also turns
+    and scales the ground (:func:`warp_fine`; the footprint is cut by :func:`make_case`).
     ``noise_free``: the product as the optics and radiometry make it, in float DN, before
     noise, whole DN and JPEG (for the ideal observer, ``diagnose_ideal.py``); the random
     draws before the noise (moved objects) are the same as without it."""
@@ -513,7 +589,9 @@ def render(ground: np.ndarray, q: float, truth: dict[str, dict[str, Any]],
     img = real_ground.astype(float)
     if "misregistration" in truth:
         dc, dr = truth["misregistration"]["shift_px"]   # [column, row] product pixels
-        if v["shift"] == "fourier":
+        if flight is not None:
+            img = warp_fine(img, (dc, dr), flight["rotation_deg"], flight["scale"])
+        elif v["shift"] == "fourier":
             img = fourier_shift_fine(img, dr * PHI, dc * PHI)
         else:
             img = np.stack([ndimage.shift(b, (dr * PHI, dc * PHI), order=3, mode="reflect")
@@ -587,6 +665,7 @@ class CaseInputs:
     rng: np.random.Generator = field(repr=False)
     margin_px: int = 12
     variant: dict[str, Any] | None = None
+    flight: dict[str, Any] | None = None
 
     @property
     def label(self) -> str:
@@ -600,8 +679,8 @@ def case_inputs(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: 
                 control_every: int = 5, base_seed: int = 1000,
                 force: tuple[str, ...] | None = None,
                 effects: tuple[str, ...] | None = None,
-                q_range: tuple[float, float] | None = None, variants: bool = False
-                ) -> CaseInputs:
+                q_range: tuple[float, float] | None = None, variants: bool = False,
+                flight: bool = False) -> CaseInputs:
     """The inputs of case ``i`` (seed base_seed + i): source round robin; every
     ``control_every``-th a control (the paper's model only); else 1-3 effects.
     ``force``: exactly these effects (random parameters), for extra development cases of
@@ -611,7 +690,9 @@ def case_inputs(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: 
     drawn) and ``q_range`` the range Q is drawn from: only for the development extension
     (seeds in EXTENSION_SEEDS, 5000-5999), so that the seed -> case mapping of the
     benchmark halves stays. ``variants``: render with the case's implementation choices
-    (:func:`draw_variant`) instead of the default ones; effects and parameters unchanged."""
+    (:func:`draw_variant`) instead of the default ones; effects and parameters unchanged.
+    ``flight``: the real-flight form (:func:`draw_flight`); a misregistration's truth then
+    also holds its rotation and scale."""
     seed = base_seed + i
     forced = effects is not None or q_range is not None
     if forced and not is_extension_seed(seed):
@@ -640,24 +721,34 @@ def case_inputs(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: 
     else:
         truth = draw_named_effects(rng, effects)
     variant = draw_variant(seed) if variants else None
+    flight_form = draw_flight(seed) if flight else None
+    if flight_form is not None and "misregistration" in truth:
+        truth["misregistration"].update(rotation_deg=flight_form["rotation_deg"],
+                                        scale=flight_form["scale"])
     return CaseInputs(index=i, seed=seed, source=name, q=q, truth=truth, ground=ground, rng=rng,
-                      margin_px=margin_px, variant=variant)
+                      margin_px=margin_px, variant=variant, flight=flight_form)
 
 
 def make_case(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: int = 12,
               control_every: int = 5, base_seed: int = 1000,
               force: tuple[str, ...] | None = None,
               effects: tuple[str, ...] | None = None,
-              q_range: tuple[float, float] | None = None, variants: bool = False) -> Case:
+              q_range: tuple[float, float] | None = None, variants: bool = False,
+              flight: bool = False) -> Case:
     """Case ``i`` (seed base_seed + i), rendered: :func:`case_inputs` (its keywords are
-    documented there) then :func:`render`."""
+    documented there) then :func:`render`; in the real-flight form the UAV image is 0
+    outside its footprint (:func:`footprint_mask`), which ``Case.uav_valid`` records."""
     inp = case_inputs(i, sources, sat_px=sat_px, margin_px=margin_px,
                       control_every=control_every, base_seed=base_seed, force=force,
-                      effects=effects, q_range=q_range, variants=variants)
+                      effects=effects, q_range=q_range, variants=variants, flight=flight)
     uav, real = render(inp.ground, inp.q, inp.truth, inp.rng, margin_px=margin_px,
-                       variant=inp.variant)
+                       variant=inp.variant, flight=inp.flight)
+    uav_valid = None
+    if inp.flight is not None:
+        uav_valid = footprint_mask(uav.shape[-1], inp.flight)
+        uav = np.where(uav_valid, uav, np.float32(0.0))
     return Case(name=inp.label, seed=inp.seed, source=inp.source, q=inp.q, truth=inp.truth,
-                uav=uav, real=real, variant=inp.variant)
+                uav=uav, real=real, variant=inp.variant, flight=inp.flight, uav_valid=uav_valid)
 
 
 def pick_sources(all_sources: list[Source], n_sjer_each: int = 2) -> list[Source]:
@@ -676,12 +767,17 @@ def _hann(n: int) -> np.ndarray:
     return np.outer(w, w)
 
 
-def welch_power(grey: np.ndarray, block: int = 32) -> np.ndarray:
+def welch_power(grey: np.ndarray, block: int = 32, valid: np.ndarray | None = None
+                ) -> np.ndarray:
+    """Mean Hann-windowed power of the half-overlapping ``block`` blocks (only those whose
+    pixels are all ``valid``, where given)."""
     w = _hann(block)
     acc = np.zeros((block, block))
     k = 0
     for r0 in range(0, grey.shape[0] - block + 1, block // 2):
         for c0 in range(0, grey.shape[1] - block + 1, block // 2):
+            if valid is not None and not valid[r0:r0 + block, c0:c0 + block].all():
+                continue
             b = grey[r0:r0 + block, c0:c0 + block]
             acc += np.abs(np.fft.fft2((b - b.mean()) * w)) ** 2
             k += 1
@@ -689,9 +785,10 @@ def welch_power(grey: np.ndarray, block: int = 32) -> np.ndarray:
 
 
 def spectral_error(sim: np.ndarray, real: np.ndarray, *, block: int = 32, n_radial: int = 12,
-                   n_angular: int = 8) -> float:
-    """RMS over radial x angular bins of log10(P_sim / P_real), luma, Welch 32-px Hann."""
-    ps, pr = welch_power(luma(sim), block), welch_power(luma(real), block)
+                   n_angular: int = 8, valid: np.ndarray | None = None) -> float:
+    """RMS over radial x angular bins of log10(P_sim / P_real), luma, Welch 32-px Hann
+    (over the blocks whose pixels are all ``valid``, where given)."""
+    ps, pr = welch_power(luma(sim), block, valid), welch_power(luma(real), block, valid)
     fy, fx = _freqs(block)
     fy, fx = np.broadcast_arrays(fy, fx)
     f = np.hypot(fy, fx)

@@ -36,6 +36,11 @@ cases; the validation half is always all 32.)
      (the same cases rendered with other implementation choices, drawn per case: the
      atmosphere's MTF exponent, the resampling's cubic kernel, the JPEG encoder's chroma
      subsampling, the shift's interpolation; ``diagnose_generator.draw_variant``)
+     python benchmarks/diagnose_independent.py --flight [--only ...] [--indices ...] --out FILE
+     (the same cases as surveyed flights deliver them: the UAV image 0 outside a footprint
+     turned against the grid whose bounding box is the scene, with its validity mask; a
+     misregistration also a rotation and scale; ``diagnose_generator.draw_flight``. The
+     spectral errors are over the blocks the flight imaged)
      python benchmarks/diagnose_independent.py --indices I,J,... --sat-px 384 --out /tmp/y.json
      (the same development cases on larger scenes: how much the scene's size limits the
      diagnosis; sources smaller than the scene give what they hold, so pick the indices of
@@ -106,33 +111,41 @@ EXTENSION_SEED_OFFSET = {"noise": 0, "isoblur": 200}
 
 
 def diagnose_case(case: gen.Case) -> dict[str, Any]:
-    """Run the diagnosis as a user would (LV baseline, then diagnose) and score it."""
-    from geosim.diagnose.engine import diagnose_arrays
-    from geosim.diagnose.grids import calibrate_q_lv
-    from geosim.diagnose.simulate import QSimulator
-    from geosim.physics.radiometry import luma
+    """Run the diagnosis as a user's flight runs it (the flight's pixels: LV baseline, then
+    diagnose; ``geosim.diagnose.grids.diagnose_pixels``) and score it."""
+    from affine import Affine
+    from rasterio.crs import CRS
+
+    from geosim.diagnose.grids import FlightPixels, diagnose_pixels
 
     t0 = time.time()
-    sim = QSimulator(case.uav, phi=gen.PHI, q_min=0.6)
-    valid = np.ones(case.real.shape[-2:], bool)
-    q_base = calibrate_q_lv(sim, luma(case.real), valid)
-    d = diagnose_arrays(case.real, sim, q_base=q_base, rng=np.random.default_rng(0), q_lo=0.7)
+    # a UTM grid at the product's 0.5 m (the place does not enter the diagnosis)
+    pixels = FlightPixels.of_arrays(case.uav, case.real, crs=CRS.from_epsg(32755),
+                                    sat_transform=Affine(gen.PHI * gen.FINE_GSD_M, 0.0, 0.0,
+                                                         0.0, -gen.PHI * gen.FINE_GSD_M,
+                                                         0.0),
+                                    phi=gen.PHI, uav_valid=case.uav_valid)
+    d = diagnose_pixels(pixels, phi=gen.PHI)
     s = d.summary
     claimed = {e["name"]: e["params"] for e in s["effects"]}
     alts = {e["name"]: e.get("alternatives", e.get("indistinguishable_from", []))
             for e in s["effects"]}
+    # the benchmark's own measure, over the blocks the flight imaged
+    pv = case.product_valid
     return {"case": case.name, "seed": case.seed, "split": case.split, "source": case.source,
-            "q_true": case.q, "q_base": q_base, "q_refined": s["refined"]["q"],
+            "q_true": case.q, "q_base": s["baseline"]["q"], "q_refined": s["refined"]["q"],
             "truth": case.truth, "claimed": claimed, "alternatives": alts,
             "claimed_gain": {e["name"]: e.get("heldout_gain") for e in s["effects"]},
             "detection_limits": s["detection_limits"],
             # both simulations as delivered: whole DN, like the scene
-            "se_base": gen.spectral_error(np.rint(d.baseline), case.real),
-            "se_refined": gen.spectral_error(np.rint(d.refined), case.real),
+            "se_base": gen.spectral_error(np.rint(d.baseline), case.real, valid=pv),
+            "se_refined": gen.spectral_error(np.rint(d.refined), case.real, valid=pv),
             "tool_spectral_error": [s["baseline"]["spectral_error"],
                                     s["refined"]["spectral_error"]],
             "seconds": time.time() - t0,
-            **({"variant": case.variant} if case.variant is not None else {})}
+            **({"variant": case.variant} if case.variant is not None else {}),
+            **({"flight": case.flight, "imaged_frac": float(np.mean(pv))}
+               if case.flight is not None else {})}
 
 
 def extension_kw(recipe: str, k: int) -> dict[str, Any]:
@@ -212,6 +225,10 @@ def main() -> None:
     ap.add_argument("--variants", action="store_true",
                     help="render each case with its drawn implementation choices "
                          "(diagnose_generator.draw_variant); needs --out elsewhere")
+    ap.add_argument("--flight", action="store_true",
+                    help="the real-flight form: each case's UAV image with a nodata rim "
+                         "around its footprint and its misregistration also a rotation and "
+                         "scale (diagnose_generator.draw_flight); needs --out elsewhere")
     ap.add_argument("--large-sources", type=int, metavar="PX",
                     help="print the development indices whose source holds a PX-pixel scene "
                          "and exit")
@@ -229,6 +246,9 @@ def main() -> None:
     if args.variants and halves_file:
         sys.exit("--variants: give --out (the halves' results file holds the default "
                  "implementation only)")
+    if args.flight and halves_file:
+        sys.exit("--flight: give --out (the halves' results file holds whole-window "
+                 "scenes only)")
     if halves_file and (args.only or args.indices or args.cases != N_CASES):
         sys.exit("--only, --indices and --cases run part of the halves: give --out, then "
                  "--merge that file into the halves' results file")
@@ -264,8 +284,10 @@ def main() -> None:
         kw["sat_px"] = args.sat_px
     if args.variants:
         kw["variants"] = True
+    if args.flight:
+        kw["flight"] = True
     _write(args.out, run(idx, sources, (lambda k: kw) if kw else None), sources, t0,
-           SEEDS_NOTE, sat_px=args.sat_px, variants=args.variants)
+           SEEDS_NOTE, sat_px=args.sat_px, variants=args.variants, flight=args.flight)
 
 
 def merge(files: list[Path], out: str) -> None:
@@ -289,6 +311,9 @@ def merge(files: list[Path], out: str) -> None:
         if doc.get("setup", {}).get("variants") or any("variant" in r for r in doc["cases"]):
             sys.exit(f"--merge: {f} holds cases rendered with implementation variants, not "
                      "the halves' default implementation")
+        if doc.get("setup", {}).get("flight") or any("flight" in r for r in doc["cases"]):
+            sys.exit(f"--merge: {f} holds real-flight-form cases, not the halves' "
+                     "whole-window scenes")
         notes.append(f"{f.name}: {len(doc['cases'])} rows")
         rows.update({r["case"]: r for r in doc["cases"]})
     for r in rows.values():
@@ -306,7 +331,7 @@ def merge(files: list[Path], out: str) -> None:
 
 def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0: float,
            seeds: str, sat_px: int = SAT_PX, note: str | None = None,
-           variants: bool = False) -> None:
+           variants: bool = False, flight: bool = False) -> None:
     halves = {h: gen.score([r for r in rows if r["split"] == h])
               for h in ("development", "validation", "extension")
               if any(r["split"] == h for r in rows)}
@@ -317,6 +342,7 @@ def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0:
                      "n_cases": len(rows), "sat_px": sat_px, "seeds": seeds,
                      "variants": ({"choices": gen.VARIANT_CHOICES, "default":
                                    gen.DEFAULT_VARIANT} if variants else False),
+                     "flight": {"ranges": gen.FLIGHT_RANGES} if flight else False,
                      "extension_recipes": {k: [[list(e), q] for e, q in v]
                                            for k, v in EXTENSION_RECIPES.items()}}}
     if note:

@@ -54,3 +54,32 @@ def diagnose_scene(truth: dict, q: float, seed: int, sat_px: int = 96,
     se_base = gen.spectral_error(np.rint(d.baseline), real)
     se_ref = gen.spectral_error(np.rint(d.refined), real)
     return claimed, se_base, se_ref, d
+
+
+def diagnose_flight_scene(truth: dict, q: float, seed: int, flight: dict, sat_px: int = 96
+                          ) -> tuple[dict[str, Any], float, float, Diagnosis]:
+    """As :func:`diagnose_scene`, for the scene as a surveyed flight delivers it (the
+    generator's real-flight form: ``flight`` as :func:`gen.draw_flight` draws it, the UAV
+    image 0 outside its footprint) through the user's path
+    (:func:`geosim.diagnose.grids.diagnose_pixels`); the spectral errors are over the
+    blocks the flight imaged."""
+    from affine import Affine
+    from rasterio.crs import CRS
+
+    from geosim.diagnose.grids import FlightPixels, diagnose_pixels
+
+    rng = np.random.default_rng(seed)
+    ground = gen.synthetic_ground(rng, (sat_px + 24) * gen.PHI)
+    uav, real = gen.render(ground, q, truth, rng, margin_px=12, flight=flight)
+    uav_valid = gen.footprint_mask(uav.shape[-1], flight)
+    uav = np.where(uav_valid, uav, np.float32(0.0))
+    pixels = FlightPixels.of_arrays(uav, real, sat_transform=Affine(0.5, 0, 0, 0, -0.5, 0),
+                                    crs=CRS.from_epsg(32755), phi=gen.PHI,
+                                    uav_valid=uav_valid)
+    d = diagnose_pixels(pixels, phi=gen.PHI)
+    claimed = {e["name"]: e for e in d.summary["effects"]}
+    r, c = real.shape[-2:]
+    pv = uav_valid[:r * gen.PHI, :c * gen.PHI].reshape(r, gen.PHI, c, gen.PHI).all(axis=(1, 3))
+    se_base = gen.spectral_error(np.rint(d.baseline), real, valid=pv)
+    se_ref = gen.spectral_error(np.rint(d.refined), real, valid=pv)
+    return claimed, se_base, se_ref, d

@@ -260,3 +260,89 @@ def test_noise_free_render_is_the_delivered_scene_before_noise():
     np.testing.assert_array_equal(clean_n, clean)
     expected = 4.0 + 0.2 * float(np.clip(clean, 0, None).mean()) + 1.0 / 12.0
     assert np.var(real_n - clean_n) == pytest.approx(expected, rel=0.1)
+
+
+# ------------------------------------------------------------------ the real-flight form
+def test_flight_form_keeps_each_cases_effects_and_scene():
+    """``--flight`` renders the same case (seed, Q, effects, parameters) as a surveyed
+    flight: the UAV image is the whole-window one inside its footprint and 0 outside; the
+    satellite scene is the same where no misregistration moves it; a misregistration's
+    truth gains the drawn rotation and scale."""
+    for i in range(12):
+        plain = gen.make_case(i, [])
+        flown = gen.make_case(i, [], flight=True)
+        assert flown.flight == gen.draw_flight(1000 + i) and plain.flight is None
+        assert flown.q == plain.q and set(flown.truth) == set(plain.truth)
+        mask = flown.uav_valid
+        assert mask is not None and 0.6 < mask.mean() <= 1.0
+        np.testing.assert_array_equal(flown.uav[:, mask], plain.uav[:, mask])
+        assert not flown.uav[:, ~mask].any()
+        if "misregistration" in plain.truth:
+            mis = flown.truth["misregistration"]
+            assert mis["shift_px"] == plain.truth["misregistration"]["shift_px"]
+            assert (mis["rotation_deg"], mis["scale"]) == (flown.flight["rotation_deg"],
+                                                           flown.flight["scale"])
+        else:
+            np.testing.assert_array_equal(flown.real, plain.real)
+
+
+def test_flight_draws_stay_in_their_ranges():
+    draws = [gen.draw_flight(1000 + i) for i in range(64)]
+    r = gen.FLIGHT_RANGES
+    assert all(r["footprint_deg"][0] <= d["footprint_deg"] <= r["footprint_deg"][1]
+               for d in draws)
+    rot = np.array([d["rotation_deg"] for d in draws])
+    assert np.all((np.abs(rot) >= r["rotation_deg"][0]) & (np.abs(rot) <= r["rotation_deg"][1]))
+    assert (rot > 0).any() and (rot < 0).any()
+    assert all(abs(d["scale"] - 1.0) <= r["scale_dev"][1] for d in draws)
+
+
+def test_footprint_mask_is_the_turned_square_in_its_bounding_box():
+    """Unturned: the whole window. Turned by a: a square of side n / (cos a + sin |a|)
+    (area to 1 %), touching all four sides of the window (its bounding box), with the
+    window's corners nodata and its centre imaged; either sign the mirror image."""
+    n = 400
+    assert gen.footprint_mask(n, {"footprint_deg": 0.0}).all()
+    for deg in (10.0, -14.0):
+        m = gen.footprint_mask(n, {"footprint_deg": deg})
+        a = np.radians(deg)
+        assert m.sum() == pytest.approx((n / (np.cos(a) + abs(np.sin(a)))) ** 2, rel=0.01)
+        assert m[0].any() and m[-1].any() and m[:, 0].any() and m[:, -1].any()
+        assert not (m[0, 0] or m[0, -1] or m[-1, 0] or m[-1, -1]) and m[n // 2, n // 2]
+    # mirrored (to the pixel rounding): fillPoly's pixel centres are on whole coordinates
+    mirror = gen.footprint_mask(n, {"footprint_deg": -10.0})[:, ::-1]
+    assert np.mean(gen.footprint_mask(n, {"footprint_deg": 10.0}) != mirror) < 0.005
+
+
+def test_warp_fine_turns_clockwise_scales_and_shifts_in_product_pixels():
+    """A bright spot east of the centre moves to the analytic place: turned clockwise on
+    the image (rows down), scaled about the centre, then shifted by (col, row) product
+    pixels (x PHI fine pixels)."""
+    n = 301
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+    c = (n - 1) / 2.0
+    spot = np.exp(-((xx - (c + 100.0)) ** 2 + (yy - c) ** 2) / (2 * 3.0 ** 2))[np.newaxis]
+    rot_deg, scale, shift = 20.0, 1.05, (0.4, -0.7)
+    out = gen.warp_fine(spot, shift, rot_deg, scale)[0]
+    a = np.radians(rot_deg)
+    want_x = c + scale * 100.0 * np.cos(a) + shift[0] * gen.PHI
+    want_y = c + scale * 100.0 * np.sin(a) + shift[1] * gen.PHI
+    w = np.clip(out, 0, None)
+    assert (w * xx).sum() / w.sum() == pytest.approx(want_x, abs=0.05)
+    assert (w * yy).sum() / w.sum() == pytest.approx(want_y, abs=0.05)
+
+
+def test_spectral_error_over_the_imaged_blocks():
+    """All valid: the same number as without a mask; with an invalid band the blocks that
+    touch it are left out (a scene that differs only there scores as equal)."""
+    rng = np.random.default_rng(3)
+    a = rng.normal(100, 10, (3, 128, 128))
+    b = a + rng.normal(0, 2, a.shape)
+    assert gen.spectral_error(a, b, valid=np.ones((128, 128), bool)) == \
+        gen.spectral_error(a, b)
+    c = a.copy()
+    c[:, :, :20] = 0.0
+    valid = np.ones((128, 128), bool)
+    valid[:, :20] = False
+    assert gen.spectral_error(c, a, valid=valid) == 0.0
+    assert gen.spectral_error(c, a) > 0.1

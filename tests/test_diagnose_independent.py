@@ -476,3 +476,24 @@ def test_moved_objects_modelled_where_they_moved():
     se_base = gen.spectral_error(np.rint(d.baseline), real)
     se_ref = gen.spectral_error(np.rint(d.refined), real)
     assert se_ref <= 0.5 * se_base, (se_base, se_ref)
+
+
+def test_flight_with_a_rim_and_a_turned_misregistration():
+    """The generator's real-flight form through the user's path: a UAV image with a nodata
+    rim around a turned footprint, the satellite scene turned 0.4 deg clockwise, scaled
+    1.002 and shifted. The misregistration alone is claimed (the rim makes no effect of
+    its own), with the rotation's sign and size (the tool's counter-clockwise positive)
+    and the scale, and the refined simulation fits better over the imaged blocks."""
+    from tests.generator_cases import diagnose_flight_scene
+
+    flight = {"footprint_deg": 12.0,
+              "rotation_deg": 0.4, "scale": 1.002}
+    truth = {"misregistration": {"shift_px": [0.35, -0.3]}}
+    claimed, se_base, se_ref, d = diagnose_flight_scene(truth, q=1.4, seed=21, flight=flight,
+                                                        sat_px=128)
+    assert not d.valid.all()
+    assert set(claimed) == {"misregistration"}, list(claimed)
+    p = claimed["misregistration"]["params"]
+    assert p["rotation_deg"] == pytest.approx(-0.4, abs=0.05), p
+    assert p["scale"] == pytest.approx(1.002, abs=0.001), p
+    assert se_ref < se_base, (se_base, se_ref)

@@ -1,9 +1,10 @@
 """One flight's co-gridded pixels and their diagnosis.
 
 :class:`FlightPixels` holds a satellite window and the UAV pixels under it (the UAV grid
-nested ``phi`` times finer); :func:`diagnose_grids` brings both to the same bands,
+nested ``phi`` times finer); :func:`diagnose_pixels` brings both to the same bands,
 calibrates the baseline Q by Laplacian variance (:func:`calibrate_q_lv`) when none is
-given, runs :func:`~geosim.diagnose.engine.diagnose_arrays` and writes the outputs.
+given and runs :func:`~geosim.diagnose.engine.diagnose_arrays`; :func:`diagnose_grids`
+also writes the outputs.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 from affine import Affine
 from rasterio.crs import CRS
 
-from geosim.diagnose.engine import diagnose_arrays
+from geosim.diagnose.engine import Diagnosis, diagnose_arrays
 from geosim.diagnose.locate import laplacian_variance
 from geosim.diagnose.report import write_diagnosis
 from geosim.diagnose.report_figures import DEFAULT_DPI
@@ -25,8 +26,8 @@ from geosim.errors import DiagnosisError, ExtentError
 from geosim.io.raster import RasterData
 from geosim.physics.radiometry import luma
 
-__all__ = ["FlightPixels", "diagnose_grids", "calibrate_q_lv", "common_bands", "sim_valid",
-           "central_window", "MAX_SAT_PX"]
+__all__ = ["FlightPixels", "diagnose_pixels", "diagnose_grids", "calibrate_q_lv",
+           "common_bands", "sim_valid", "central_window", "MAX_SAT_PX"]
 
 
 MAX_SAT_PX = 384
@@ -115,12 +116,28 @@ class FlightPixels:
                    sat=data(sat, sat_valid, sat_transform), q_base=q_base)
 
 
-def diagnose_grids(pixels: FlightPixels, out_dir: Path, *, phi: int, seed: int = 0,
-                   q_min: float = 0.5, q_max: float = 8.0, extra: dict[str, Any] | None = None,
-                   dpi: int = DEFAULT_DPI) -> dict[str, Any]:
-    """Diagnose one flight's co-gridded pixels (UAV at sat/phi, satellite at the sat grid)
-    and write diagnosis.json, GeoTIFFs and figures (at ``dpi``) into ``out_dir``."""
-    sat_transform, crs = pixels.sat.transform, pixels.sat.crs
+def diagnose_pixels(pixels: FlightPixels, *, phi: int, seed: int = 0, q_min: float = 0.5,
+                    q_max: float = 8.0) -> Diagnosis:
+    """Diagnose one flight's co-gridded pixels, in memory (what :func:`diagnose_grids`
+    writes).
+
+    Both images are brought to the same bands; the paper's model is simulated from the UAV
+    pixels (their invalid ones filled, :class:`~geosim.diagnose.simulate.QSimulator`); the
+    pixels compared are the satellite's valid ones whose ``phi`` × ``phi`` UAV pixels are
+    all valid; the baseline Q is ``pixels.q_base`` or, where None, calibrated here by
+    Laplacian variance within [``q_min``, ``q_max``].
+
+    Parameters
+    ----------
+    pixels
+        The satellite window and the UAV pixels under it.
+    phi
+        UAV pixels per satellite pixel along each axis.
+    seed
+        Seed of the refined simulation's noise realisation.
+    q_min, q_max
+        Range of the Laplacian-variance calibration of Q.
+    """
     uav, sat = common_bands(pixels.uav.array, pixels.sat.array)
     sim = QSimulator(uav.astype(np.float32), phi=phi, valid=pixels.uav.valid, q_min=0.6)
     s0 = sim(2.0)
@@ -128,9 +145,18 @@ def diagnose_grids(pixels: FlightPixels, out_dir: Path, *, phi: int, seed: int =
     q_base = pixels.q_base
     if q_base is None:
         q_base = calibrate_q_lv(sim, luma(sat), valid, q_min=q_min, q_max=q_max)
-    diag = diagnose_arrays(sat, sim, q_base=q_base, rng=np.random.default_rng(seed),
-                           valid=valid, gsd_m=abs(sat_transform.a), q_lo=0.7)
-    return write_diagnosis(diag, out_dir, transform=sat_transform, crs=crs,
+    return diagnose_arrays(sat, sim, q_base=q_base, rng=np.random.default_rng(seed),
+                           valid=valid, gsd_m=abs(pixels.sat.transform.a), q_lo=0.7)
+
+
+def diagnose_grids(pixels: FlightPixels, out_dir: Path, *, phi: int, seed: int = 0,
+                   q_min: float = 0.5, q_max: float = 8.0, extra: dict[str, Any] | None = None,
+                   dpi: int = DEFAULT_DPI) -> dict[str, Any]:
+    """Diagnose one flight's co-gridded pixels (UAV at sat/phi, satellite at the sat grid;
+    :func:`diagnose_pixels`) and write diagnosis.json, GeoTIFFs and figures (at ``dpi``)
+    into ``out_dir``."""
+    diag = diagnose_pixels(pixels, phi=phi, seed=seed, q_min=q_min, q_max=q_max)
+    return write_diagnosis(diag, out_dir, transform=pixels.sat.transform, crs=pixels.sat.crs,
                            sources=list(pixels.sources), extra=extra, dpi=dpi)
 
 
