@@ -146,3 +146,47 @@ def test_transfer_fit_with_alias_pieces_finds_a_low_q_box(tapered):
     assert box.q == pytest.approx(q, rel=0.08)
     assert null.chi2 - box.chi2 > 10 * max(fits["product"][1].chi2 - fits["product"][0].chi2,
                                            1.0)
+
+
+@pytest.mark.parametrize("shift_px", [(0.0, 0.0), (0.4, -0.3)])
+def test_alias_pieces_of_a_flight_with_a_nodata_rim(shift_px):
+    """A flight's UAV image with a nodata rim (real flights have one): the pieces are made
+    (round 36 made none), from the filled image; away from the rim they are the pieces of
+    the whole image (the ground's own aliasing, to the reach of the cells' sharp frequency
+    masks), and on the rim each takes its nearest
+    valid pixel's value, as the registration fills the simulations they add to."""
+    from geosim.diagnose.model import ForwardModel
+    from geosim.diagnose.stage_blur import split_alias_cells
+    from geosim.diagnose.stage_inputs import make_inputs
+    from geosim.diagnose.stage_register import coregister
+    from geosim.physics.geometry import fourier_shift
+
+    phi, q, n = 10, 0.9, 96
+    uav = _texture(n * phi, 11)
+    uav_valid = np.ones(uav.shape[-2:], bool)
+    uav_valid[:, :130] = False        # a 13 px rim on the product grid, and 7 px
+    uav_valid[-70:, :] = False
+    valid = uav_valid.reshape(n, phi, n, phi).all(axis=(1, 3))
+    full = QSimulator(uav.astype(np.float32), phi=phi, q_min=0.6)
+    real = fourier_shift(full(q), shift_px)
+    q_grid = np.array([0.75, q, 1.1])
+
+    def pieces_of(sim: QSimulator, valid: np.ndarray | None):
+        inp = make_inputs(real, sim, q, valid, None, False, 0.5)
+        model = ForwardModel(q=q, blur={}, registration=coregister(inp))
+        return model.registration, split_alias_cells(inp, model, q_grid)
+
+    sim = QSimulator(np.where(uav_valid, uav, 0.0).astype(np.float32), phi=phi,
+                     valid=uav_valid, q_min=0.6)
+    reg, pieces = pieces_of(sim, valid)
+    _, whole = pieces_of(full, None)
+    assert reg.fill_idx is not None and pieces is not None and whole is not None
+    # away from the rim by more than the optics' and the fill's reach
+    inner = ndimage.binary_erosion(valid, iterations=12)
+    nearest = (reg.fill_idx[0][~valid], reg.fill_idx[1][~valid])
+    for pc, pw in zip(pieces, whole, strict=True):
+        for cell, piece in pc.items():
+            # the cells' sharp frequency masks reach far: 5-15 % RMS here (none: 100 %)
+            rms = np.sqrt(np.mean(np.abs(pw[cell][inner]) ** 2))
+            assert np.sqrt(np.mean(np.abs(piece - pw[cell])[inner] ** 2)) < 0.2 * rms, cell
+            np.testing.assert_array_equal(piece[~valid], piece[nearest])

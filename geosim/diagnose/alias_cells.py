@@ -19,22 +19,24 @@ exact for any shift-invariant blur, and the same as without pieces at Q ≥ 2 (n
 beyond the Nyquist) — where none are made.
 
 Where the diagnosis uses them (:func:`geosim.diagnose.stage_blur.split_alias_cells`): fits
-that start below :data:`SPLIT_Q_MAX`, a fully valid UAV image, no JPEG in the model;
-tapered as the simulations under a change taper. A model holding a resampling gets no cell
+that start below :data:`SPLIT_Q_MAX`, no JPEG in the model; made from the UAV image with
+its invalid pixels filled and filled on the product grid as the simulations are (since
+round 37; before, a flight's nodata rim turned them off); tapered as the simulations under
+a change taper. A model holding a resampling gets no cell
 correction (:func:`geosim.diagnose.fit.model_transfer`): that scene was sampled on its
 native grid, whose alias cells are not the product's.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
 import scipy.fft
 
 __all__ = ["ALIAS_CELLS", "ALIAS_Q_MAX", "SPLIT_Q_MAX", "AliasPieces", "cell_parts",
-           "alias_pieces"]
+           "iter_cell_parts", "alias_pieces"]
 
 #: the alias cells k = (k_row, k_col) ≠ (0, 0), cycles per product pixel (content beyond
 #: 1.5 cycles/px, which only Q < 0.67 passes, joins the |k| = 1 cells)
@@ -53,8 +55,11 @@ SPLIT_Q_MAX = 2.5
 AliasPieces = list[dict[tuple[int, int], np.ndarray] | None]
 
 
-def cell_parts(fine: np.ndarray, phi: int) -> dict[tuple[int, int], np.ndarray]:
-    """The part of a 2-D fine-grid image in each alias cell (complex, same shape).
+def iter_cell_parts(fine: np.ndarray, phi: int
+                    ) -> Iterator[tuple[tuple[int, int], np.ndarray]]:
+    """(cell, the part of a 2-D fine-grid image in that alias cell: complex, same shape),
+    one cell at a time, so that a caller keeping less than the parts (a simulator's
+    truncated coefficients) never holds all eight full-size complex images at once.
 
     The image is reflect-padded (1/8 of its side, ≥ 16 px, as
     :func:`geosim.physics.otf.apply_transfer` pads) and split by the cell of each FFT
@@ -65,8 +70,14 @@ def cell_parts(fine: np.ndarray, phi: int) -> dict[tuple[int, int], np.ndarray]:
     spec = scipy.fft.fft2(p)
     ky = np.clip(np.round(np.fft.fftfreq(p.shape[0]) * phi), -1, 1)[:, None]
     kx = np.clip(np.round(np.fft.fftfreq(p.shape[1]) * phi), -1, 1)[None, :]
-    return {c: scipy.fft.ifft2(spec * ((ky == c[0]) & (kx == c[1])))[pad:-pad, pad:-pad]
-            for c in ALIAS_CELLS}
+    for c in ALIAS_CELLS:
+        yield c, scipy.fft.ifft2(spec * ((ky == c[0]) & (kx == c[1])))[pad:-pad, pad:-pad]
+
+
+def cell_parts(fine: np.ndarray, phi: int) -> dict[tuple[int, int], np.ndarray]:
+    """The part of a 2-D fine-grid image in each alias cell (complex, same shape):
+    :func:`iter_cell_parts` gathered."""
+    return dict(iter_cell_parts(fine, phi))
 
 
 def alias_pieces(cell_sims: dict[tuple[int, int], tuple[Callable[[float], np.ndarray],

@@ -17,7 +17,7 @@ from geosim.degrade.core import (
     fill_invalid,
     optics_otf_below_cutoff,
 )
-from geosim.diagnose.alias_cells import cell_parts
+from geosim.diagnose.alias_cells import iter_cell_parts
 from geosim.physics import otf
 from geosim.physics.cubic import OPENCV_A
 from geosim.physics.geometry import AffineField, fourier_shift, warp_to_fine_grid
@@ -201,7 +201,7 @@ class QSimulator:
         sims = {c: tuple(QSimulator(part[np.newaxis].astype(np.float32), phi=self.phi,
                                     q_min=self.q_min, keep_image=False)
                          for part in (im.real, im.imag))
-                for c, im in cell_parts(fine, self.phi).items()}
+                for c, im in iter_cell_parts(fine, self.phi)}
         self._alias = (key, sims)  # type: ignore[assignment]
         return sims  # type: ignore[return-value]
 

@@ -5,6 +5,7 @@ cross-validation folds (:class:`SpectralSetup`), forward blur selection with roo
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -15,11 +16,10 @@ from geosim.diagnose.context import FitWindow
 from geosim.diagnose.exact_family import EXACT_FAMILIES, exact_duel
 from geosim.diagnose.fit import BinFilter, SpectralData, build_spectral_data
 from geosim.diagnose.jpeg_transfer import JpegTransfer
-from geosim.diagnose.model import ForwardModel
+from geosim.diagnose.model import ForwardModel, Registration
 from geosim.diagnose.select import BlurSelection, select_blur
 from geosim.diagnose.spectra import apply_taper, block_origins, screen_blocks
 from geosim.diagnose.stage_inputs import Inputs, grey
-from geosim.errors import DiagnosisError
 
 __all__ = ["SpectralSetup", "spectral_setup", "change_taper", "select_with_q_room",
            "quadrant_folds", "exact_anisotropic", "adopt", "ISOTROPIC", "MIN_BLOCKS",
@@ -155,10 +155,6 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
         taper, real_g, block_px = None, inp.grey, inp.block_px
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
         rho = np.zeros(len(origins))
-    if len(origins) < 8:  # hard minimum
-        raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
-                             "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
-                             "larger common extent")
     keep = jpeg.measured_at if jpeg is not None else None
     fit_sims = [apply_taper(s, taper) for s in sims_grey]
     # blurs before sampling (alias cells); the fits see the pieces tapered as the
@@ -210,24 +206,38 @@ def split_alias_cells(inp: Inputs, model: ForwardModel, q_grid: np.ndarray
     are (the registration's shift on the fine grid, or the sampled image moved), so that a
     blur acts on them before sampling (:mod:`geosim.diagnose.alias_cells`).
 
+    Where the images have invalid pixels the pieces are filled from the nearest valid
+    pixel as the simulations are (a linear map, so they still sum to the simulation).
+
     None where the fits start at Q ≥ :data:`~geosim.diagnose.alias_cells.SPLIT_Q_MAX`,
-    the UAV image has invalid pixels, the simulator cannot split, or the model holds a
-    compression: through the JPEG's linearised transfer the pieces fitted the development
-    scenes worse than none (round 29: 5 of the 7 JPEG rows at Q < 1.8 whose fit changed,
-    e.g. spectral error 0.013 -> 0.061), so under JPEG the fits keep the sampled model."""
+    the simulator cannot split, or the model holds a compression: through the JPEG's
+    linearised transfer the pieces fitted the development scenes worse than none (round
+    29: 5 of the 7 JPEG rows at Q < 1.8 whose fit changed, e.g. spectral error 0.013 ->
+    0.061), so under JPEG the fits keep the sampled model."""
     reg = model.registration
     source, shift = reg.fine_source(inp.simulate)
     cells = getattr(source, "alias_simulators", None)
     if (q_grid[0] >= ALIAS_Q_MAX or model.q >= SPLIT_Q_MAX or not callable(cells)
-            or reg.fill_idx is not None or model.compression is not None):
+            or model.compression is not None):
         return None
     sims = cells(shift)
     if sims is None:
         return None
-    finish = (lambda img: reg.move(img)[0]) if reg.applied and not reg.before_sampling \
-        else None
+    finish = _piece_finish(reg)
     return alias_pieces(sims, q_grid, q_min=float(getattr(inp.simulate, "q_min", 0.0)),
                         finish=finish)
+
+
+def _piece_finish(reg: Registration) -> Callable[[np.ndarray], np.ndarray] | None:
+    """What a sampled 2-D piece goes through after sampling, as the simulations do
+    (:meth:`~geosim.diagnose.model.Registration.simulation`): filled from the nearest
+    valid pixel, then moved where the move is made after sampling; None: nothing."""
+    idx = reg.fill_idx
+    if not reg.before_sampling and (reg.applied or idx is not None):
+        return lambda img: reg.move(img)[0]
+    if idx is not None:
+        return lambda img: img[idx[0], idx[1]]
+    return None
 
 
 def taper_pieces(pieces: AliasPieces | None, taper: np.ndarray | None

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from geosim.diagnose.spectra import block_origins
+from geosim.errors import DiagnosisError
 from geosim.physics.radiometry import luma
 
 __all__ = ["Inputs", "make_inputs", "grey", "greys", "bands", "rmse"]
@@ -52,16 +54,34 @@ def rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean((a[:, mask] - b[:, mask]) ** 2)))
 
 
+#: fewest fully valid Welch blocks (half overlapping) a diagnosis is made from
+MIN_VALID_BLOCKS = 8
+
+
 def make_inputs(real: np.ndarray, simulate: Callable[[float], np.ndarray], q_base: float,
                 valid: np.ndarray | None, block_px: int | None, quantized: bool | None,
                 gsd_m: float) -> Inputs:
     """The :class:`Inputs` of a diagnosis, with the defaults filled in (all valid, Welch
-    block 32 px or 64 px from 640 px, quantisation detected from whole DN)."""
+    block 32 px or 64 px from 640 px, quantisation detected from whole DN).
+
+    Raises
+    ------
+    DiagnosisError
+        Where the valid pixels hold fewer than :data:`MIN_VALID_BLOCKS` fully valid
+        blocks (a small or ragged common extent)."""
     r = bands(real)
     rows, cols = r.shape[-2:]
     valid = np.ones((rows, cols), bool) if valid is None else np.asarray(valid, bool)
     if block_px is None:
         block_px = 64 if min(rows, cols) >= 640 else 32
+    n_blocks = len(block_origins((rows, cols), block_px=block_px, valid=valid))
+    if n_blocks < MIN_VALID_BLOCKS:
+        raise DiagnosisError(
+            f"real scene: only {n_blocks} fully valid {block_px}×{block_px} blocks on the "
+            f"{gsd_m:g} m grid where both images hold data ({int(valid.sum())} of "
+            f"{rows}×{cols} pixels); the diagnosis needs at least {MIN_VALID_BLOCKS} — give "
+            "a larger common extent (a flight whose imaged area holds a square about "
+            f"{(2 * block_px + 1) * gsd_m:.0f} m across)")
     if quantized is None:
         quantized = bool(np.all(r[:, valid] == np.round(r[:, valid])))
     return Inputs(real=r, grey=grey(r), valid=valid, simulate=simulate,
