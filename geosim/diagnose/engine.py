@@ -54,7 +54,7 @@ from geosim.diagnose.stage_change import (
     resampling_phase_dn2,
 )
 from geosim.diagnose.stage_claims import claim_effects
-from geosim.diagnose.stage_inputs import Inputs, grey, make_inputs
+from geosim.diagnose.stage_inputs import Inputs, grey, make_inputs, require_blocks
 from geosim.diagnose.stage_isotropic_pixels import pixel_isotropic
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
 from geosim.diagnose.stage_jpeg_blur import censored_blur, censored_resampling_check
@@ -161,6 +161,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     Diagnosis
     """
     inp = make_inputs(real, simulate, q_base, valid, block_px, quantized, gsd_m)
+    require_blocks(inp)
     reg = coregister(inp)
     model = ForwardModel(q=inp.q_base, blur={}, registration=reg)
     model = model.without(compression=find_compression(inp, reg))

@@ -15,7 +15,8 @@ from geosim.diagnose.spectra import block_origins
 from geosim.errors import DiagnosisError
 from geosim.physics.radiometry import luma
 
-__all__ = ["Inputs", "make_inputs", "grey", "greys", "bands", "rmse"]
+__all__ = ["Inputs", "make_inputs", "require_blocks", "MIN_VALID_BLOCKS", "grey", "greys", "bands",
+           "rmse"]
 
 
 @dataclass
@@ -62,28 +63,34 @@ def make_inputs(real: np.ndarray, simulate: Callable[[float], np.ndarray], q_bas
                 valid: np.ndarray | None, block_px: int | None, quantized: bool | None,
                 gsd_m: float) -> Inputs:
     """The :class:`Inputs` of a diagnosis, with the defaults filled in (all valid, Welch
-    block 32 px or 64 px from 640 px, quantisation detected from whole DN).
-
-    Raises
-    ------
-    DiagnosisError
-        Where the valid pixels hold fewer than :data:`MIN_VALID_BLOCKS` fully valid
-        blocks (a small or ragged common extent)."""
+    block 32 px or 64 px from 640 px, quantisation detected from whole DN)."""
     r = bands(real)
     rows, cols = r.shape[-2:]
     valid = np.ones((rows, cols), bool) if valid is None else np.asarray(valid, bool)
     if block_px is None:
         block_px = 64 if min(rows, cols) >= 640 else 32
-    n_blocks = len(block_origins((rows, cols), block_px=block_px, valid=valid))
-    if n_blocks < MIN_VALID_BLOCKS:
-        raise DiagnosisError(
-            f"real scene: only {n_blocks} fully valid {block_px}×{block_px} blocks on the "
-            f"{gsd_m:g} m grid where both images hold data ({int(valid.sum())} of "
-            f"{rows}×{cols} pixels); the diagnosis needs at least {MIN_VALID_BLOCKS} — give "
-            "a larger common extent (a flight whose imaged area holds a square about "
-            f"{(2 * block_px + 1) * gsd_m:.0f} m across)")
     if quantized is None:
         quantized = bool(np.all(r[:, valid] == np.round(r[:, valid])))
     return Inputs(real=r, grey=grey(r), valid=valid, simulate=simulate,
                   base=bands(simulate(q_base)), q_base=float(q_base), block_px=block_px,
                   quantized=quantized, gsd_m=gsd_m)
+
+
+def require_blocks(inp: Inputs) -> None:
+    """Refuse a diagnosis whose valid pixels hold fewer than :data:`MIN_VALID_BLOCKS` fully
+    valid Welch blocks (a small or ragged common extent), before any stage needs them.
+
+    Raises
+    ------
+    DiagnosisError
+        Naming the count, the extent and what to give instead.
+    """
+    rows, cols = inp.valid.shape
+    n_blocks = len(block_origins((rows, cols), block_px=inp.block_px, valid=inp.valid))
+    if n_blocks < MIN_VALID_BLOCKS:
+        raise DiagnosisError(
+            f"real scene: only {n_blocks} fully valid {inp.block_px}×{inp.block_px} blocks "
+            f"on the {inp.gsd_m:g} m grid where both images hold data "
+            f"({int(inp.valid.sum())} of {rows}×{cols} pixels); the diagnosis needs at "
+            f"least {MIN_VALID_BLOCKS} — give a larger common extent (a flight whose imaged "
+            f"area holds a square about {(2 * inp.block_px + 1) * inp.gsd_m:.0f} m across)")
