@@ -20,6 +20,7 @@ from geosim.diagnose.model import ForwardModel, Registration
 from geosim.diagnose.select import BlurSelection, select_blur
 from geosim.diagnose.spectra import apply_taper, block_origins, screen_blocks
 from geosim.diagnose.stage_inputs import Inputs, grey
+from geosim.errors import DiagnosisError
 
 __all__ = ["SpectralSetup", "spectral_setup", "change_taper", "select_with_q_room",
            "quadrant_folds", "exact_anisotropic", "adopt", "ISOTROPIC", "MIN_BLOCKS",
@@ -155,6 +156,10 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
         taper, real_g, block_px = None, inp.grey, inp.block_px
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
         rho = np.zeros(len(origins))
+    if len(origins) < 8:  # hard minimum
+        raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
+                             "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
+                             "larger common extent")
     keep = jpeg.measured_at if jpeg is not None else None
     fit_sims = [apply_taper(s, taper) for s in sims_grey]
     # blurs before sampling (alias cells); the fits see the pieces tapered as the

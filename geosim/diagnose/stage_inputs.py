@@ -15,8 +15,7 @@ from geosim.diagnose.spectra import block_origins
 from geosim.errors import DiagnosisError
 from geosim.physics.radiometry import luma
 
-__all__ = ["Inputs", "make_inputs", "require_blocks", "MIN_VALID_BLOCKS", "grey", "greys", "bands",
-           "rmse"]
+__all__ = ["Inputs", "make_inputs", "require_blocks", "grey", "greys", "bands", "rmse"]
 
 
 @dataclass
@@ -55,10 +54,6 @@ def rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean((a[:, mask] - b[:, mask]) ** 2)))
 
 
-#: fewest fully valid Welch blocks (half overlapping) a diagnosis is made from
-MIN_VALID_BLOCKS = 8
-
-
 def make_inputs(real: np.ndarray, simulate: Callable[[float], np.ndarray], q_base: float,
                 valid: np.ndarray | None, block_px: int | None, quantized: bool | None,
                 gsd_m: float) -> Inputs:
@@ -77,20 +72,20 @@ def make_inputs(real: np.ndarray, simulate: Callable[[float], np.ndarray], q_bas
 
 
 def require_blocks(inp: Inputs) -> None:
-    """Refuse a diagnosis whose valid pixels hold fewer than :data:`MIN_VALID_BLOCKS` fully
-    valid Welch blocks (a small or ragged common extent), before any stage needs them.
+    """Refuse a diagnosis whose valid pixels hold no fully valid Welch block (a small or
+    ragged common extent: a narrow strip, a turned flight in a small window) before the
+    registration needs one. Fewer than the fits need is refused by the spectral setup,
+    after it has tried smaller blocks.
 
     Raises
     ------
     DiagnosisError
-        Naming the count, the extent and what to give instead.
+        Naming the extent and what to give instead.
     """
     rows, cols = inp.valid.shape
-    n_blocks = len(block_origins((rows, cols), block_px=inp.block_px, valid=inp.valid))
-    if n_blocks < MIN_VALID_BLOCKS:
+    if not block_origins((rows, cols), block_px=inp.block_px, valid=inp.valid):
         raise DiagnosisError(
-            f"real scene: only {n_blocks} fully valid {inp.block_px}×{inp.block_px} blocks "
-            f"on the {inp.gsd_m:g} m grid where both images hold data "
-            f"({int(inp.valid.sum())} of {rows}×{cols} pixels); the diagnosis needs at "
-            f"least {MIN_VALID_BLOCKS} — give a larger common extent (a flight whose imaged "
-            f"area holds a square about {(2 * inp.block_px + 1) * inp.gsd_m:.0f} m across)")
+            f"real scene: no fully valid {inp.block_px}×{inp.block_px} block on the "
+            f"{inp.gsd_m:g} m grid where both images hold data ({int(inp.valid.sum())} of "
+            f"{rows}×{cols} pixels); give a larger common extent (a flight whose imaged "
+            f"area holds squares of {inp.block_px * inp.gsd_m:g} m)")
