@@ -76,16 +76,26 @@ class Registration:
         :attr:`presampled` is available, else the sampled simulation moved (:meth:`move`)."""
         if self.before_sampling and q >= getattr(self.presampled, "q_min", 0.0):
             s = np.asarray(self.presampled(q), float)
-            s = s[np.newaxis] if s.ndim == 2 else s
-            return s[:, self.fill_idx[0], self.fill_idx[1]] if self.fill_idx is not None else s
+            return self.fill(s[np.newaxis] if s.ndim == 2 else s)
         return self.move(simulate(q))
+
+    def fill(self, sim: np.ndarray) -> np.ndarray:
+        """``sim`` (…, rows, cols) with each invalid pixel taking its nearest valid pixel's
+        value (:attr:`fill_idx`); as it is where every pixel is valid."""
+        return sim[..., self.fill_idx[0], self.fill_idx[1]] if self.fill_idx is not None \
+            else sim
+
+    def onto_scene(self, sampled: np.ndarray) -> np.ndarray:
+        """A bands-first render sampled from the UAV image as it lies on the real scene:
+        filled (:meth:`fill`), and moved (:meth:`move`) unless the move was made on the
+        fine grid before sampling (:attr:`before_sampling`: the render is of the moved
+        image)."""
+        return self.fill(sampled) if self.before_sampling else self.move(sampled)
 
     def move(self, sim: np.ndarray) -> np.ndarray:
         """A bands-first simulation, invalid pixels filled from the nearest valid, moved."""
         s = np.asarray(sim, float)
-        s = s[np.newaxis] if s.ndim == 2 else s
-        if self.fill_idx is not None:
-            s = s[:, self.fill_idx[0], self.fill_idx[1]]
+        s = self.fill(s[np.newaxis] if s.ndim == 2 else s)
         if self.field_px is not None:
             return warp_by_field(s, *self.field_px)
         return fourier_shift(s, self.shift_px) if self.applied else s
@@ -254,7 +264,6 @@ class ForwardModel:
         if (not lsi and not resampled) or not callable(variant) \
                 or self.q < getattr(simulate, "q_min", 0.0):
             return self.sim_at(simulate, compressed=False), self.blur
-        pre = reg.before_sampling
         key = tuple(sorted((n, tuple(sorted(p.items()))) for n, p in lsi.items()))
         tr = otf.compose(*lsi_transfers(lsi)) if lsi else None
         s = None
@@ -269,12 +278,7 @@ class ForwardModel:
             if v is None:
                 return self.sim_at(simulate, compressed=False), self.blur
             s = np.asarray(v(self.q), float)
-        s = s[np.newaxis] if s.ndim == 2 else s
-        if pre:
-            s = s[:, reg.fill_idx[0], reg.fill_idx[1]] if reg.fill_idx is not None else s
-        else:
-            s = reg.move(s)
-        return s, rest
+        return reg.onto_scene(s[np.newaxis] if s.ndim == 2 else s), rest
 
     def _before_compression(self, simulate: Callable[[float], np.ndarray]) -> np.ndarray:
         m = self.blurred(simulate)

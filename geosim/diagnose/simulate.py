@@ -60,6 +60,8 @@ class QSimulator:
         self.uav: np.ndarray | None = np.asarray(uav)
         self.phi = int(phi)
         self.valid = valid
+        #: whether every UAV pixel is valid (no fill needed)
+        self._all_valid = valid is None or bool(np.all(valid))
         self.q_min = float(q_min)
         self._cache: dict[float, np.ndarray] = {}
         self._fast = SpectralDegrader(self.uav, phi=self.phi, q_min=self.q_min, valid=valid)
@@ -82,7 +84,7 @@ class QSimulator:
         """The UAV image (float64) as the paper's model degrades it: invalid pixels filled
         by :func:`~geosim.degrade.core.fill_invalid`, as
         :class:`~geosim.degrade.core.SpectralDegrader` fills them (kept once made)."""
-        if self.valid is None or np.all(self.valid):
+        if self._all_valid:
             return np.asarray(self.uav, dtype=float)
         if self._filled is None:
             self._filled = fill_invalid(self.uav, self.valid)
@@ -94,7 +96,7 @@ class QSimulator:
         filled — the move carries filled values across the mask, and the caller fills the
         invalid product pixels from the nearest valid ones
         (:attr:`~geosim.diagnose.model.Registration.fill_idx`)."""
-        return self.valid if self.valid is None or np.all(self.valid) else None
+        return self.valid if self._all_valid else None
 
     def __call__(self, q: float) -> np.ndarray:
         key = round(float(q), 4)

@@ -234,15 +234,12 @@ def split_alias_cells(inp: Inputs, model: ForwardModel, q_grid: np.ndarray
 
 
 def _piece_finish(reg: Registration) -> Callable[[np.ndarray], np.ndarray] | None:
-    """What a sampled 2-D piece goes through after sampling, as the simulations do
-    (:meth:`~geosim.diagnose.model.Registration.simulation`): filled from the nearest
-    valid pixel, then moved where the move is made after sampling; None: nothing."""
-    idx = reg.fill_idx
-    if not reg.before_sampling and (reg.applied or idx is not None):
-        return lambda img: reg.move(img)[0]
-    if idx is not None:
-        return lambda img: img[idx[0], idx[1]]
-    return None
+    """What a sampled 2-D piece goes through to lie on the real scene, as the simulations
+    do (:meth:`~geosim.diagnose.model.Registration.onto_scene`); None where that is
+    nothing (all pixels valid, and the move made before sampling or none)."""
+    if reg.fill_idx is None and (reg.before_sampling or not reg.applied):
+        return None
+    return lambda img: reg.onto_scene(img[np.newaxis])[0]
 
 
 def taper_pieces(pieces: AliasPieces | None, taper: np.ndarray | None
