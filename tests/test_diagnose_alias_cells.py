@@ -19,9 +19,13 @@ import diagnose_alias_cells as alias  # noqa: E402
 
 from geosim.diagnose.alias_cells import alias_pieces, cell_parts  # noqa: E402
 from geosim.diagnose.exact import ExactSimulations  # noqa: E402
-from geosim.diagnose.fit import build_spectral_data, fit_transfer  # noqa: E402
+from geosim.diagnose.fit import (  # noqa: E402
+    alias_unexplained_share,
+    build_spectral_data,
+    fit_transfer,
+)
 from geosim.diagnose.simulate import QSimulator  # noqa: E402
-from geosim.diagnose.spectra import apply_taper  # noqa: E402
+from geosim.diagnose.spectra import apply_taper, unexplained_power  # noqa: E402
 from geosim.diagnose.stage_blur import change_taper, taper_pieces  # noqa: E402
 from geosim.physics.radiometry import luma  # noqa: E402
 
@@ -190,3 +194,80 @@ def test_alias_pieces_of_a_flight_with_a_nodata_rim(shift_px):
             rms = np.sqrt(np.mean(np.abs(pw[cell][inner]) ** 2))
             assert np.sqrt(np.mean(np.abs(piece - pw[cell])[inner] ** 2)) < 0.2 * rms, cell
             np.testing.assert_array_equal(piece[~valid], piece[nearest])
+
+
+def test_unexplained_power_is_what_no_combination_explains():
+    # per bin, target = a·x0 + b·x1 + white noise over n blocks: the residual power over
+    # its degrees of freedom (n − regressors holding power) estimates the noise's; a
+    # regressor with no power at all is not counted and does not break the solve
+    rng = np.random.default_rng(3)
+    n, shape = 40, (12, 12)
+
+    def cn(*s):
+        return rng.normal(size=s) + 1j * rng.normal(size=s)
+
+    x0, x1 = cn(n, *shape), cn(n, *shape)
+    a, b = cn(*shape), cn(*shape)
+    exact = a * x0 + b * x1
+    rss, held = unexplained_power([x0, x1, np.zeros_like(x0)], exact)
+    assert np.all(held == 2)
+    assert np.all(rss < 1e-6 * np.sum(np.abs(exact) ** 2, axis=0))
+    sigma2 = 0.3**2 * 2  # complex: 0.3 per part
+    rss, held = unexplained_power([x0, x1], exact + 0.3 * cn(n, *shape))
+    assert np.mean(rss / (n - held)) == pytest.approx(sigma2, rel=0.05)
+    # one regressor: the residual of the plain coherence, S_rr (1 − γ²)
+    t = exact + 0.3 * cn(n, *shape)
+    rss1, _ = unexplained_power([x0], t)
+    srr, s00 = np.sum(np.abs(t) ** 2, 0), np.sum(np.abs(x0) ** 2, 0)
+    coh = np.abs(np.sum(t * np.conj(x0), 0)) ** 2 / (srr * s00)
+    assert np.allclose(rss1, srr * (1 - coh))
+
+
+def _box_scene(noise_dn: float) -> tuple[np.ndarray, list[np.ndarray], list[float],
+                                          list, list[tuple[int, int]]]:
+    """(real scene, grid simulations, their Q, alias pieces, Welch origins) of a 1.5 px box
+    on the fine grid at Q 1.15 (scipy), 128 px, white noise of ``noise_dn``."""
+    phi, q = 10, 1.15
+    uav = _texture(1280, 11)
+    sim = QSimulator(uav, phi=phi, q_min=0.6)
+    real = luma(QSimulator(ndimage.uniform_filter(uav, size=(1, 15, 15), mode="wrap"),
+                           phi=phi, q_min=0.6)(q))
+    real = real + noise_dn * np.random.default_rng(5).normal(size=real.shape)
+    q_grid = list(np.exp(np.linspace(np.log(0.7), np.log(2.6), 8)))
+    sims = [luma(sim(g)) for g in q_grid]
+    pieces = alias_pieces(sim.alias_simulators(), q_grid, q_min=0.6)
+    origins = [(r, c) for r in range(0, 128 - 32 + 1, 16) for c in range(0, 128 - 32 + 1, 16)]
+    return real, sims, q_grid, pieces, origins
+
+
+def test_alias_share_lets_the_cells_folding_count_as_signal():
+    # a box before sampling at Q 1.15 folds a different mix of each alias cell than the
+    # sharpest simulation: not a linear function of it, so its coherence counts that as
+    # noise. The cells explain it (share well below 1 where they hold power), the box's
+    # evidence grows, and the fit still finds the box and Q
+    real, sims, q_grid, pieces, origins = _box_scene(0.0)
+    share = alias_unexplained_share(sims[0], pieces[0], real, origins, 32)
+    assert share is not None and share.shape == (32, 32)
+    assert float(np.median(share)) < 0.5, np.median(share)
+    evidence = {}
+    for name, sh in (("share", share), ("coherence", None)):
+        data = build_spectral_data(sims, q_grid, real, origins=origins, block_px=32,
+                                   pieces=pieces, share=sh)
+        box = fit_transfer(data, ["detector_integration"], q_starts=(1.5,))
+        null = fit_transfer(data, [], q_starts=(1.5,))
+        evidence[name] = null.chi2 - box.chi2
+        assert box.effects["detector_integration"]["pitch_px"] == pytest.approx(1.5, rel=0.1)
+        assert box.q == pytest.approx(1.15, rel=0.08)
+    assert evidence["share"] > 2 * evidence["coherence"], evidence
+    # too few blocks for nine coefficients a bin: no share
+    assert alias_unexplained_share(sims[0], pieces[0], real, origins[:17], 32) is None
+
+
+def test_alias_share_keeps_white_noise_as_noise():
+    # a scene that differs from the sharpest simulation only by white noise: no cell
+    # explains any of it, and the share stays near 1 (the ratio of two unbiased estimates
+    # of the same noise, pooled over 3 x 3 bins, clipped at 1)
+    _, sims, _, pieces, origins = _box_scene(0.0)
+    noisy = sims[0] + 2.0 * np.random.default_rng(9).normal(size=sims[0].shape)
+    share = alias_unexplained_share(sims[0], pieces[0], noisy, origins, 32)
+    assert float(np.median(share)) > 0.85, np.median(share)

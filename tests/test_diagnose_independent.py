@@ -404,6 +404,27 @@ def test_detector_named_by_the_exact_model(realdata, samples_dir):
     assert row["se_refined"] <= 0.5 * row["se_base"], (row["se_base"], row["se_refined"])
 
 
+def test_low_q_detector_box_is_not_absorbed_into_q(realdata, samples_dir):
+    """Development c1214 (round 37's fresh half: a 1.50 px detector box alone at Q 1.15 on
+    the Australian tile, independent generator). The box folds a different mix of each
+    alias cell than the sharpest simulation; the transfer's variance counted that as noise
+    and the box's evidence was ΔBIC 7: Q absorbed it (LV Q 1.62 kept, nothing claimed,
+    the box stated untestable below 1.72 px). With the cells' share taken out of the
+    variance: the box, its width and the true Q, and the refined fit far better than half
+    the baseline's (the benchmark's measure)."""
+    import diagnose_independent as bench
+
+    sources = gen.pick_sources(gen.list_sources(realdata, samples_dir))
+    case = gen.make_case(1214, sources)
+    assert set(case.truth) == {"detector_integration"} and case.source == "australia"
+    row = bench.diagnose_case(case)
+    assert set(row["claimed"]) == {"detector_integration"}, row["claimed"]
+    pitch = row["claimed"]["detector_integration"]["pitch_px"]
+    assert abs(pitch - case.truth["detector_integration"]["pitch_px"]) < 0.1, pitch
+    assert abs(row["q_refined"] - case.q) < 0.05 * case.q, (row["q_refined"], case.q)
+    assert row["se_refined"] <= 0.2 * row["se_base"], (row["se_base"], row["se_refined"])
+
+
 @pytest.mark.parametrize("gsd_m, side_px", [(0.1, 150), (0.05, 333)])
 def test_source_sat_px_is_the_largest_scene_fine_window_cuts(tmp_path, gsd_m, side_px):
     import rasterio

@@ -32,10 +32,10 @@ from geosim.diagnose.alias_cells import ALIAS_CELLS, AliasPieces
 from geosim.diagnose.effects import NON_LSI, get_effect
 from geosim.diagnose.fit import (
     HANN_CORRELATION,
-    TRANSFER_FLOOR,
     BinFilter,
     TransferFit,
     blur_transfer,
+    transfer_variance,
     used_bins,
 )
 from geosim.diagnose.spectra import apply_taper, hann2d
@@ -118,9 +118,12 @@ class ExactBlocks:
     @classmethod
     def build(cls, sims: ExactSimulations, real_grey: np.ndarray,
               origins: list[tuple[int, int]], block_px: int,
-              keep: BinFilter | None = None) -> ExactBlocks:
+              keep: BinFilter | None = None, share: np.ndarray | None = None
+              ) -> ExactBlocks:
         """Windowed block spectra of the sharpest simulation and the real scene; ``keep``:
-        the bins the fit may use (:func:`~geosim.diagnose.fit.used_bins`)."""
+        the bins the fit may use (:func:`~geosim.diagnose.fit.used_bins`); ``share``: the
+        share of the incoherent power that is noise
+        (:func:`~geosim.diagnose.fit.alias_unexplained_share`)."""
         f0 = _block_ffts(sims.sharpest, origins, block_px)
         fr = _block_ffts(np.asarray(real_grey, float), origins, block_px)
         s00 = np.maximum(np.sum(np.abs(f0) ** 2, axis=0), 1e-30)
@@ -130,8 +133,7 @@ class ExactBlocks:
         fx = np.fft.fftfreq(block_px)[None, :] * np.ones((block_px, 1))
         half = used_bins(fy, fx, keep=keep)
         t = sr0 / s00
-        coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
-        var = (1.0 - coh) / (2.0 * len(origins) * coh) * np.abs(t) ** 2 + TRANSFER_FLOOR**2
+        var = transfer_variance(s00, srr, sr0, len(origins), share)
         return cls(list(origins), block_px, f0, s00, half, t[half], var[half])
 
     def transfer(self, img: np.ndarray, gain: float) -> np.ndarray:

@@ -61,7 +61,8 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
                fold_groups: Sequence[Sequence[tuple[int, int]]], block_px: int,
                sel: BlurSelection, family: str, q_base: float,
                keep: BinFilter | None = None, *, taper: np.ndarray | None = None,
-               pieces: AliasPieces | None = None) -> BlurSelection:
+               pieces: AliasPieces | None = None,
+               share: np.ndarray | None = None) -> BlurSelection:
     """Decide the claimed member of ``family`` by the exact model's χ² on all blocks.
 
     Parameters
@@ -92,6 +93,9 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
     pieces
         The simulations' alias-cell parts (as ``full`` was built with), so that the blurs
         act before sampling; None: none.
+    share
+        Per bin, the share of the incoherent power that is noise (as ``full`` was built
+        with, :func:`~geosim.diagnose.fit.alias_unexplained_share`); None: all.
 
     Returns
     -------
@@ -110,13 +114,13 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
     starts = {m: fit_transfer(full, [*others, m], q_starts=qs) for m in members}
     without = fit_transfer(full, others, q_starts=qs) if others else sel.null
     sims = ExactSimulations(sims_grey, q_grid, taper=taper, pieces=pieces)
-    blocks = ExactBlocks.build(sims, grey, origins, block_px, keep)
+    blocks = ExactBlocks.build(sims, grey, origins, block_px, keep, share)
     folds = []
     if len(fold_groups) >= 2:
         for j, g in enumerate(fold_groups):
             train = [o for i, gg in enumerate(fold_groups) if i != j for o in gg]
-            folds.append((ExactBlocks.build(sims, grey, train, block_px, keep),
-                          ExactBlocks.build(sims, grey, list(g), block_px, keep)))
+            folds.append((ExactBlocks.build(sims, grey, train, block_px, keep, share),
+                          ExactBlocks.build(sims, grey, list(g), block_px, keep, share)))
     res = duel(sims, blocks, folds, starts, without)
     ok = [m for m in members if not at_bound(m, res.fits[m].effects[m])
           and clearly_present(m, res.fits[m].effects[m])

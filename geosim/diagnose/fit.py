@@ -31,22 +31,29 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+from scipy import ndimage
 from scipy.optimize import least_squares
 
 from geosim.diagnose.alias_cells import ALIAS_CELLS, AliasPieces
 from geosim.diagnose.effects import NON_LSI, BlurEffect, get_effect
-from geosim.diagnose.spectra import hann2d
+from geosim.diagnose.spectra import block_ffts, hann2d, unexplained_power
 
 __all__ = [
     "SpectralData", "TransferFit", "build_spectral_data", "fit_transfer", "model_transfer",
     "blur_transfer", "evaluate_chi2", "fit_radiometry", "fit_noise", "NoiseFit", "RadiometryFit",
-    "HANN_CORRELATION", "BinFilter", "used_bins",
+    "HANN_CORRELATION", "BinFilter", "used_bins", "transfer_variance", "alias_unexplained_share",
 ]
 
 #: number of frequency bins one independent Welch estimate spreads over with a 2-D Hann window
 HANN_CORRELATION = 2.25
 #: floor of the standard error of the measured transfer (model approximations), dimensionless
 TRANSFER_FLOOR = 0.004
+#: fewest Welch blocks on which the alias-cell regression (9 complex coefficients per
+#: bin) is trusted to say how much of the scene's incoherent power the cells explain
+SHARE_MIN_BLOCKS = 18
+#: most blocks the regression uses (evenly spaced among them; the share is a property of
+#: the scene and its frequencies, and 10 stacks of block FFTs of a large scene are large)
+SHARE_MAX_BLOCKS = 256
 
 
 @dataclass
@@ -137,11 +144,78 @@ def used_bins(fy: np.ndarray, fx: np.ndarray, f_max: float = 0.5,
     return half if keep is None else half & keep(fy, fx)
 
 
+def transfer_variance(s00: np.ndarray, srr: np.ndarray, sr0: np.ndarray, n_blocks: int,
+                      share: np.ndarray | None = None) -> np.ndarray:
+    """Variance of the real and of the imaginary part of a measured transfer sr0 / s00
+    (Welch sums over ``n_blocks`` blocks: s00 of the sharpest simulation's power, srr of the
+    real scene's, sr0 their cross-spectrum): the real scene's power that the simulation does
+    not explain linearly (1 − coherence), times ``share`` where given (the part of that
+    power the alias cells do not explain either, :func:`alias_unexplained_share`), plus
+    the floor of the model's approximations (:data:`TRANSFER_FLOOR`)."""
+    t = sr0 / np.maximum(s00, 1e-30)
+    coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
+    incoherent = (1.0 - coh) / (2.0 * n_blocks * coh) * np.abs(t) ** 2
+    if share is not None:
+        incoherent = incoherent * share
+    return incoherent + TRANSFER_FLOOR**2
+
+
+def alias_unexplained_share(sharpest: np.ndarray, cells: dict[tuple[int, int], np.ndarray],
+                            real_grey: np.ndarray, origins: list[tuple[int, int]],
+                            block_px: int) -> np.ndarray | None:
+    """Per bin of the block FFT grid (block_px, block_px): the share of the real scene's
+    power that the sharpest simulation does not explain which its alias-cell parts do
+    not explain either (≤ 1).
+
+    Below Q 2 the optics pass content beyond the Nyquist, and how sampling folds it
+    depends on the blur acting before sampling: a scene with a detector box at Q 1.15
+    keeps a different mix of each alias cell than the sharpest simulation. That part of
+    the scene is not a linear function of the sharpest simulation, so the coherence
+    against it counts it as noise — yet the fits model it exactly (:func:`model_transfer`
+    with the cells). Counted as noise it inflated the transfer's variance ~4× and hid the
+    box (development c1214: ΔBIC 7 against the tool's own pixel residual 0.29 → 0.083 DN²).
+    Here the real scene's blocks are regressed per bin on the sharpest simulation and its
+    eight cell parts (:func:`~geosim.diagnose.spectra.unexplained_power`); the ratio of the
+    residual variances (each over its degrees of freedom, pooled over 3 × 3 neighbouring
+    bins) is what remains noise.
+
+    Parameters
+    ----------
+    sharpest, cells
+        The sharpest grid simulation (grey, rows × cols) and its part in each alias cell
+        (complex; :func:`geosim.diagnose.alias_cells.alias_pieces`), as the fits see them.
+    real_grey
+        The real scene as the fits see it.
+    origins, block_px
+        The Welch blocks (all of the fit's; at most :data:`SHARE_MAX_BLOCKS` are used).
+
+    Returns
+    -------
+    np.ndarray or None
+        None with fewer than :data:`SHARE_MIN_BLOCKS` blocks (too few for 9 coefficients).
+    """
+    n = len(origins)
+    if n < SHARE_MIN_BLOCKS:
+        return None
+    used = list(origins)[::-(-n // SHARE_MAX_BLOCKS)]
+    n = len(used)
+    w = hann2d(block_px)
+    f0 = block_ffts(sharpest, used, block_px, w)
+    fr = block_ffts(real_grey, used, block_px, w)
+    rss_1, _ = unexplained_power([f0], fr)
+    rss_m, n_held = unexplained_power(
+        [f0, *(block_ffts(cells[c], used, block_px, w) for c in ALIAS_CELLS)], fr)
+    noise_m = ndimage.uniform_filter(rss_m / np.maximum(n - n_held, 1), 3, mode="wrap")
+    noise_1 = ndimage.uniform_filter(rss_1 / (n - 1), 3, mode="wrap")
+    return np.clip(noise_m / np.maximum(noise_1, 1e-300), 0.0, 1.0)
+
+
 def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float],
                         real_grey: np.ndarray, *, origins: list[tuple[int, int]],
                         block_px: int, f_max: float = 0.5,
                         keep: BinFilter | None = None,
-                        pieces: AliasPieces | None = None) -> SpectralData:
+                        pieces: AliasPieces | None = None,
+                        share: np.ndarray | None = None) -> SpectralData:
     """Welch spectra of the real scene and the Q-grid simulations against the sharpest.
 
     Parameters
@@ -160,6 +234,10 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
         Per member of ``q_grid``, the simulation's parts folded from each alias cell
         (:func:`geosim.diagnose.alias_cells.alias_pieces`; None entries: none); their
         transfers let a blur act before sampling (:func:`model_transfer`).
+    share
+        Per bin of the block grid, the share of the incoherent power that is noise
+        (:func:`alias_unexplained_share`, made on all the scene's blocks; the transfer's
+        variance is scaled by it); None: all of it.
     """
     w = hann2d(block_px)
     n = len(origins)
@@ -182,7 +260,7 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
     half = used_bins(fy, fx, f_max, keep)
     t = sr0 / np.maximum(s00, 1e-30)
     coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
-    var = (1.0 - coh) / (2.0 * n * coh) * np.abs(t) ** 2 + TRANSFER_FLOOR**2
+    var = transfer_variance(s00, srr, sr0, n, share)
     alias_g = None
     if pieces is not None and any(p is not None for p in pieces):
         s00_safe = np.maximum(s00, 1e-30)

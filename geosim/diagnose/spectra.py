@@ -22,7 +22,8 @@ import numpy as np
 __all__ = [
     "CrossSpectrum", "block_origins", "screen_blocks", "cross_spectrum", "frequency_angle_deg",
     "polar_bin_mean", "power_spectrum", "radial_profile", "directional_profiles",
-    "spectral_error", "log_power_ratio", "hann2d",
+    "spectral_error", "log_power_ratio", "hann2d", "unexplained_power",
+    "block_ffts",
 ]
 
 
@@ -109,12 +110,59 @@ def _detrend(block: np.ndarray) -> np.ndarray:
     return block - block.mean()
 
 
-def _block_ffts(img: np.ndarray, origins: list[tuple[int, int]], block_px: int,
-                window: np.ndarray) -> np.ndarray:
+def block_ffts(img: np.ndarray, origins: list[tuple[int, int]], block_px: int,
+               window: np.ndarray) -> np.ndarray:
+    """FFTs (n_blocks, block_px, block_px) of the blocks of a 2-D image (real or complex)
+    at ``origins``, each less its mean and multiplied by ``window``."""
     out = np.empty((len(origins), block_px, block_px), dtype=complex)
     for k, (r0, c0) in enumerate(origins):
         out[k] = np.fft.fft2(_detrend(img[r0:r0 + block_px, c0:c0 + block_px]) * window)
     return out
+
+
+def unexplained_power(regressors: list[np.ndarray], target: np.ndarray, *,
+                      held_rel: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """Per frequency bin, the power of ``target`` that no linear combination of the
+    ``regressors`` explains (the complement of the multiple coherence; Bendat & Piersol,
+    *Random Data*, ch. 7).
+
+    Parameters
+    ----------
+    regressors
+        Block spectra (n_blocks, rows, cols), complex, of each input; the first one's
+        power at a bin is the scale against which the others count as holding anything
+        there (``held_rel``).
+    target
+        Block spectra (n_blocks, rows, cols) of the output.
+    held_rel
+        A regressor whose power at a bin is below this fraction of the first one's is not
+        counted there (the sharp cell masks leave ~1e-16 of it).
+
+    Returns
+    -------
+    (rss, n_held)
+        rss (rows, cols): Σ over blocks of |target − Σ_j a_j regressor_j|², the complex
+        coefficients a_j fitted per bin by least squares (units of power × blocks);
+        n_held (rows, cols): how many regressors hold power at each bin (the fit's
+        parameters there, for the degrees of freedom).
+    """
+    p = len(regressors)
+    gram = np.empty(target.shape[1:] + (p, p), dtype=complex)
+    proj = np.empty(target.shape[1:] + (p,), dtype=complex)
+    for i, xi in enumerate(regressors):
+        proj[..., i] = np.sum(np.conj(xi) * target, axis=0)
+        for j in range(i, p):
+            gram[..., i, j] = np.sum(np.conj(xi) * regressors[j], axis=0)
+            gram[..., j, i] = np.conj(gram[..., i, j])
+    power = np.real(np.einsum("...ii->...i", gram))
+    n_held = np.sum(power > held_rel * power[..., :1], axis=-1)
+    # a relative ridge keeps the empty regressors (no power at the bin) from making the
+    # system singular without changing the fit of the others
+    ridge = 1e-9 * power.sum(axis=-1)[..., None, None] * np.eye(p)
+    coef = np.linalg.solve(gram + ridge, proj[..., None])[..., 0]
+    total = np.sum(np.abs(target) ** 2, axis=0)
+    explained = np.real(np.sum(np.conj(proj) * coef, axis=-1))
+    return np.maximum(total - explained, 0.0), n_held
 
 
 def cross_spectrum(sim: np.ndarray, real: np.ndarray, *, block_px: int = 32,
@@ -154,8 +202,8 @@ def cross_spectrum(sim: np.ndarray, real: np.ndarray, *, block_px: int = 32,
     s_rr = np.zeros((block_px, block_px))
     s_rs = np.zeros((block_px, block_px), dtype=complex)
     for sb, rb in zip(s, r, strict=True):
-        fs = _block_ffts(sb, origins, block_px, w)
-        fr = _block_ffts(rb, origins, block_px, w)
+        fs = block_ffts(sb, origins, block_px, w)
+        fr = block_ffts(rb, origins, block_px, w)
         s_ss += np.sum(np.abs(fs) ** 2, axis=0)
         s_rr += np.sum(np.abs(fr) ** 2, axis=0)
         s_rs += np.sum(fr * np.conj(fs), axis=0)

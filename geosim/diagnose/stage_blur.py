@@ -14,7 +14,12 @@ from scipy import ndimage
 from geosim.diagnose.alias_cells import ALIAS_Q_MAX, SPLIT_Q_MAX, AliasPieces, alias_pieces
 from geosim.diagnose.context import FitWindow
 from geosim.diagnose.exact_family import EXACT_FAMILIES, exact_duel
-from geosim.diagnose.fit import BinFilter, SpectralData, build_spectral_data
+from geosim.diagnose.fit import (
+    BinFilter,
+    SpectralData,
+    alias_unexplained_share,
+    build_spectral_data,
+)
 from geosim.diagnose.jpeg_transfer import JpegTransfer
 from geosim.diagnose.model import ForwardModel, Registration
 from geosim.diagnose.select import BlurSelection, select_blur
@@ -66,6 +71,10 @@ class SpectralSetup:
     #: the simulations' parts folded from each alias cell (:func:`split_alias_cells`, not
     #: tapered; ``full`` and ``folds`` were built with them tapered); None: not split
     pieces: AliasPieces | None = None
+    #: per bin of the block grid, the share of the incoherent power that is noise, not
+    #: the alias cells' folding (:func:`~geosim.diagnose.fit.alias_unexplained_share`;
+    #: ``full``, ``folds`` and the exact duels' blocks were built with it); None: all
+    share: np.ndarray | None = None
 
     def tapered(self, img: np.ndarray) -> np.ndarray:
         """A grey image (rows, cols) as the fits see it: with the changed regions tapered
@@ -166,10 +175,13 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
     # simulations (the taper is linear), the exact model tapers its renders itself
     pieces = split_alias_cells(inp, model, q_grid)
     fit_pieces = taper_pieces(pieces, taper)
+    share = (alias_unexplained_share(fit_sims[0], fit_pieces[0], real_g, origins, block_px)
+             if fit_pieces is not None and fit_pieces[0] is not None else None)
 
     def spectral_data(blocks: list[tuple[int, int]]) -> SpectralData:
         return build_spectral_data(fit_sims, q_grid, real_g, origins=blocks,
-                                   block_px=block_px, keep=keep, pieces=fit_pieces)
+                                   block_px=block_px, keep=keep, pieces=fit_pieces,
+                                   share=share)
 
     full = spectral_data(origins)
     groups = quadrant_folds(origins, block_px, (rows, cols))
@@ -180,7 +192,7 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
             folds.append((spectral_data(train), spectral_data(g)))
     return SpectralSetup(q_grid=q_grid, sims_grey=sims_grey, origins=origins, block_px=block_px,
                          full=full, folds=folds, n_screened=len(rho) - len(origins), keep=keep,
-                         taper=taper, pieces=pieces)
+                         taper=taper, pieces=pieces, share=share)
 
 
 def change_taper(mask: np.ndarray, valid: np.ndarray,
@@ -269,5 +281,5 @@ def exact_anisotropic(inp: Inputs, setup: SpectralSetup, sel: BlurSelection
     for family in EXACT_FAMILIES:
         sel = exact_duel(setup.tapered(inp.grey), setup.sims_grey, setup.q_grid, setup.full,
                          setup.origins, groups, setup.block_px, sel, family, inp.q_base, setup.keep,
-                         taper=setup.taper, pieces=setup.pieces)
+                         taper=setup.taper, pieces=setup.pieces, share=setup.share)
     return sel
