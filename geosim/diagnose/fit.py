@@ -172,7 +172,7 @@ def alias_unexplained_share(sharpest: np.ndarray, cells: dict[tuple[int, int], n
     keeps a different mix of each alias cell than the sharpest simulation. That part of
     the scene is not a linear function of the sharpest simulation, so the coherence
     against it counts it as noise — yet the fits model it exactly (:func:`model_transfer`
-    with the cells). Counted as noise it inflated the transfer's variance ~4× and hid the
+    with the cells). Counted as noise it inflated the transfer's variance ~5× and hid the
     box (development c1214: ΔBIC 7 against the tool's own pixel residual 0.29 → 0.083 DN²).
     Here the real scene's blocks are regressed per bin on the sharpest simulation and its
     eight cell parts (:func:`~geosim.diagnose.spectra.unexplained_power`); the ratio of the
