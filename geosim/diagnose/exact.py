@@ -35,6 +35,7 @@ from geosim.diagnose.fit import (
     BinFilter,
     TransferFit,
     blur_transfer,
+    measured_transfer,
     transfer_variance,
     used_bins,
 )
@@ -132,8 +133,8 @@ class ExactBlocks:
         fy = np.fft.fftfreq(block_px)[:, None] * np.ones((1, block_px))
         fx = np.fft.fftfreq(block_px)[None, :] * np.ones((block_px, 1))
         half = used_bins(fy, fx, keep=keep)
-        t = sr0 / s00
-        var = transfer_variance(s00, srr, sr0, len(origins), share)
+        t, coh = measured_transfer(s00, srr, sr0)
+        var = transfer_variance(t, coh, len(origins), share)
         return cls(list(origins), block_px, f0, s00, half, t[half], var[half])
 
     def transfer(self, img: np.ndarray, gain: float) -> np.ndarray:

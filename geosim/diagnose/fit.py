@@ -41,7 +41,8 @@ from geosim.diagnose.spectra import block_ffts, hann2d, unexplained_power
 __all__ = [
     "SpectralData", "TransferFit", "build_spectral_data", "fit_transfer", "model_transfer",
     "blur_transfer", "evaluate_chi2", "fit_radiometry", "fit_noise", "NoiseFit", "RadiometryFit",
-    "HANN_CORRELATION", "BinFilter", "used_bins", "transfer_variance", "alias_unexplained_share",
+    "HANN_CORRELATION", "BinFilter", "used_bins", "measured_transfer", "transfer_variance",
+    "alias_unexplained_share",
 ]
 
 #: number of frequency bins one independent Welch estimate spreads over with a 2-D Hann window
@@ -144,16 +145,23 @@ def used_bins(fy: np.ndarray, fx: np.ndarray, f_max: float = 0.5,
     return half if keep is None else half & keep(fy, fx)
 
 
-def transfer_variance(s00: np.ndarray, srr: np.ndarray, sr0: np.ndarray, n_blocks: int,
-                      share: np.ndarray | None = None) -> np.ndarray:
-    """Variance of the real and of the imaginary part of a measured transfer sr0 / s00
-    (Welch sums over ``n_blocks`` blocks: s00 of the sharpest simulation's power, srr of the
-    real scene's, sr0 their cross-spectrum): the real scene's power that the simulation does
-    not explain linearly (1 − coherence), times ``share`` where given (the part of that
-    power the alias cells do not explain either, :func:`alias_unexplained_share`), plus
-    the floor of the model's approximations (:data:`TRANSFER_FLOOR`)."""
+def measured_transfer(s00: np.ndarray, srr: np.ndarray, sr0: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(transfer sr0 / s00, magnitude-squared coherence clipped to (0, 1)) from Welch sums:
+    s00 the sharpest simulation's power, srr the real scene's, sr0 their cross-spectrum."""
     t = sr0 / np.maximum(s00, 1e-30)
     coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
+    return t, coh
+
+
+def transfer_variance(t: np.ndarray, coh: np.ndarray, n_blocks: int,
+                      share: np.ndarray | None = None) -> np.ndarray:
+    """Variance of the real and of the imaginary part of a measured transfer ``t`` with
+    coherence ``coh`` over ``n_blocks`` Welch blocks (:func:`measured_transfer`): the real
+    scene's power that the simulation does not explain linearly (1 − coherence), times
+    ``share`` where given (the part of that power the alias cells do not explain either,
+    :func:`alias_unexplained_share`), plus the floor of the model's approximations
+    (:data:`TRANSFER_FLOOR`)."""
     incoherent = (1.0 - coh) / (2.0 * n_blocks * coh) * np.abs(t) ** 2
     if share is not None:
         incoherent = incoherent * share
@@ -197,7 +205,8 @@ def alias_unexplained_share(sharpest: np.ndarray, cells: dict[tuple[int, int], n
     n = len(origins)
     if n < SHARE_MIN_BLOCKS:
         return None
-    used = list(origins)[::-(-n // SHARE_MAX_BLOCKS)]
+    step = -(-n // SHARE_MAX_BLOCKS)  # ceil: at most SHARE_MAX_BLOCKS, evenly spaced
+    used = list(origins)[::step]
     n = len(used)
     w = hann2d(block_px)
     f0 = block_ffts(sharpest, used, block_px, w)
@@ -258,9 +267,8 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
     fy = np.fft.fftfreq(block_px)[:, None] * np.ones((1, block_px))
     fx = np.fft.fftfreq(block_px)[None, :] * np.ones((block_px, 1))
     half = used_bins(fy, fx, f_max, keep)
-    t = sr0 / np.maximum(s00, 1e-30)
-    coh = np.clip(np.abs(sr0) ** 2 / np.maximum(s00 * srr, 1e-300), 1e-6, 1.0 - 1e-9)
-    var = transfer_variance(s00, srr, sr0, n, share)
+    t, coh = measured_transfer(s00, srr, sr0)
+    var = transfer_variance(t, coh, n, share)
     alias_g = None
     if pieces is not None and any(p is not None for p in pieces):
         s00_safe = np.maximum(s00, 1e-30)

@@ -29,10 +29,13 @@ from geosim.errors import DiagnosisError
 
 __all__ = ["SpectralSetup", "spectral_setup", "change_taper", "select_with_q_room",
            "quadrant_folds", "exact_anisotropic", "adopt", "ISOTROPIC", "MIN_BLOCKS",
-           "Q_EXTEND", "Q_GRID_STEP", "Q_MAX", "TAPER_SIGMA_PX"]
+           "MIN_FIT_BLOCKS", "Q_EXTEND", "Q_GRID_STEP", "Q_MAX", "TAPER_SIGMA_PX"]
 
 #: Welch blocks wanted for a stable transfer-function estimate
 MIN_BLOCKS = 16
+#: fewest Welch blocks a transfer fit is made from (after smaller blocks and the change
+#: taper were tried): fewer is refused
+MIN_FIT_BLOCKS = 8
 #: σ (px) of the Gaussian edge with which the changed regions are tapered out of both
 #: images where they leave too few whole blocks (:func:`change_taper`): the taper's edge
 #: leaks the scene's strong low frequencies, unblurred in both images, towards higher
@@ -159,16 +162,16 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
         block_px = inp.block_px
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
         origins, rho = screen_blocks(apply_taper(base_g, taper), real_g, origins, block_px)
-    if len(origins) < 8:
+    if len(origins) < MIN_FIT_BLOCKS:
         # still too few (most blocks unlike the simulation): every valid block as it is
         # (the changes then lower the coherence, which the fit weights by)
         taper, real_g, block_px = None, inp.grey, inp.block_px
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
         rho = np.zeros(len(origins))
-    if len(origins) < 8:  # hard minimum
+    if len(origins) < MIN_FIT_BLOCKS:
         raise DiagnosisError(f"real scene: only {len(origins)} fully valid {block_px}×{block_px} "
-                             "blocks on the 0.5 m grid; the diagnosis needs at least 8 — give a "
-                             "larger common extent")
+                             f"blocks on the {inp.gsd_m:g} m grid; the diagnosis needs at least "
+                             f"{MIN_FIT_BLOCKS} — give a larger common extent")
     keep = jpeg.measured_at if jpeg is not None else None
     fit_sims = [apply_taper(s, taper) for s in sims_grey]
     # blurs before sampling (alias cells); the fits see the pieces tapered as the
