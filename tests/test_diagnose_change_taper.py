@@ -9,6 +9,7 @@ bright "moved cattle" pasted only into it; the transfer the fit's Welch data mea
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from geosim.diagnose.context import FitWindow
@@ -16,7 +17,7 @@ from geosim.diagnose.exact import ExactBlocks, ExactSimulations, exact_fit
 from geosim.diagnose.fit import TransferFit
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.spectra import apply_taper, block_origins
-from geosim.diagnose.stage_blur import MIN_BLOCKS, change_taper, spectral_setup
+from geosim.diagnose.stage_blur import MIN_BLOCKS, change_taper, extent_block_px, spectral_setup
 from geosim.diagnose.stage_inputs import make_inputs
 from geosim.diagnose.stage_register import coregister
 
@@ -109,6 +110,26 @@ def test_scattered_changes_are_tapered_and_the_transfer_is_the_true_one() -> Non
     assert untapered.taper is None
     err_untapered = _transfer_error(untapered)
     assert err_untapered > 2.0 * err_tapered, (err_untapered, err_tapered)
+
+
+@pytest.mark.parametrize("shape,expected", [((128, 128), 32), ((80, 128), 32),
+                                            ((40, 60), 16), ((64, 64), 16), ((20, 20), 16)])
+def test_the_block_size_follows_the_valid_extent(shape, expected) -> None:
+    """32 px blocks where the extent holds 16 half-overlapping ones (128 px: 49; 80 × 128:
+    28), 16 px where it does not (64 px: 9 of 32 px), never smaller than 16 px."""
+    assert extent_block_px(np.ones(shape, bool), 32) == expected
+
+
+def test_a_turned_footprint_is_counted_by_its_valid_pixels() -> None:
+    """A footprint turned 30° in a 96 px window: its valid pixels, not the window, decide."""
+    rr, cc = np.mgrid[:96, :96] - 47.5
+    t = np.radians(30.0)
+    valid = (np.abs(rr * np.cos(t) + cc * np.sin(t)) < 30) & (
+        np.abs(-rr * np.sin(t) + cc * np.cos(t)) < 30)
+    n32 = len(block_origins(valid.shape, block_px=32, valid=valid))
+    assert n32 < MIN_BLOCKS
+    assert extent_block_px(valid, 32) == 16
+    assert len(block_origins(valid.shape, block_px=16, valid=valid)) >= MIN_BLOCKS
 
 
 def test_no_taper_where_whole_blocks_remain() -> None:

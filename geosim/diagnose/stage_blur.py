@@ -27,9 +27,9 @@ from geosim.diagnose.spectra import apply_taper, block_origins, screen_blocks
 from geosim.diagnose.stage_inputs import Inputs, grey
 from geosim.errors import DiagnosisError
 
-__all__ = ["SpectralSetup", "spectral_setup", "change_taper", "select_with_q_room",
-           "quadrant_folds", "exact_anisotropic", "adopt", "ISOTROPIC", "MIN_BLOCKS",
-           "MIN_FIT_BLOCKS", "Q_EXTEND", "Q_GRID_STEP", "Q_MAX", "TAPER_SIGMA_PX"]
+__all__ = ["SpectralSetup", "spectral_setup", "change_taper", "extent_block_px",
+           "select_with_q_room", "quadrant_folds", "exact_anisotropic", "adopt", "ISOTROPIC",
+           "MIN_BLOCKS", "MIN_FIT_BLOCKS", "Q_EXTEND", "Q_GRID_STEP", "Q_MAX", "TAPER_SIGMA_PX"]
 
 #: Welch blocks wanted for a stable transfer-function estimate
 MIN_BLOCKS = 16
@@ -156,16 +156,17 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
     if len(origins) < MIN_BLOCKS and not window.mask[inp.valid].all():
         # changed regions scattered over a small scene leave too few whole blocks even of
         # 16 px: they are tapered out of the scene and every simulation alike, and every
-        # valid block is used (see change_taper)
+        # valid block is used (see change_taper), of the size the valid extent holds
         taper = change_taper(window.mask, inp.valid)
         real_g = apply_taper(inp.grey, taper)
-        block_px = inp.block_px
+        block_px = extent_block_px(inp.valid, inp.block_px)
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
         origins, rho = screen_blocks(apply_taper(base_g, taper), real_g, origins, block_px)
     if len(origins) < MIN_FIT_BLOCKS:
         # still too few (most blocks unlike the simulation): every valid block as it is
         # (the changes then lower the coherence, which the fit weights by)
-        taper, real_g, block_px = None, inp.grey, inp.block_px
+        taper, real_g = None, inp.grey
+        block_px = extent_block_px(inp.valid, inp.block_px)
         origins = block_origins((rows, cols), block_px=block_px, valid=inp.valid)
         rho = np.zeros(len(origins))
     if len(origins) < MIN_FIT_BLOCKS:
@@ -196,6 +197,18 @@ def spectral_setup(inp: Inputs, model: ForwardModel, window: FitWindow,
     return SpectralSetup(q_grid=q_grid, sims_grey=sims_grey, origins=origins, block_px=block_px,
                          full=full, folds=folds, n_screened=len(rho) - len(origins), keep=keep,
                          taper=taper, pieces=pieces, share=share)
+
+
+def extent_block_px(valid: np.ndarray, block_px: int) -> int:
+    """The largest Welch block side (px) of ``block_px``, its half, ... down to 16 of which
+    the valid extent holds :data:`MIN_BLOCKS` whole (half-overlapping) blocks; 16 where
+    none does. A flight's turned footprint in a small window holds few 32 px blocks: the
+    changes tapered out at 32 px left 4 of them and the flight was refused (12 of 128
+    development flights with moved objects, round 38), while 16 px blocks fill it."""
+    while block_px > 16 and len(block_origins(valid.shape, block_px=block_px,
+                                              valid=valid)) < MIN_BLOCKS:
+        block_px //= 2
+    return block_px
 
 
 def change_taper(mask: np.ndarray, valid: np.ndarray,
