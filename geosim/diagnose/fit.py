@@ -252,11 +252,7 @@ def build_spectral_data(sims_grey: Sequence[np.ndarray], q_grid: Sequence[float]
     n = len(origins)
 
     def ffts(img: np.ndarray) -> np.ndarray:
-        out = np.empty((n, block_px, block_px), dtype=complex)
-        for k, (r0, c0) in enumerate(origins):
-            b = img[r0:r0 + block_px, c0:c0 + block_px]
-            out[k] = np.fft.fft2((b - b.mean()) * w)
-        return out
+        return block_ffts(img, origins, block_px, w)
 
     f0 = ffts(sims_grey[0])
     fr_ = ffts(real_grey)
