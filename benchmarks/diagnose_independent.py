@@ -137,6 +137,9 @@ def diagnose_case(case: gen.Case) -> dict[str, Any]:
             "truth": case.truth, "claimed": claimed, "alternatives": alts,
             "claimed_gain": {e["name"]: e.get("heldout_gain") for e in s["effects"]},
             "detection_limits": s["detection_limits"],
+            # a scene change's second pass on the ground with the moved objects painted in
+            "scene_change_refit": {k: v for k, v in s.get("scene_change_refit", {}).items()
+                                   if k != "note"},
             # both simulations as delivered: whole DN, like the scene
             "se_base": gen.spectral_error(np.rint(d.baseline), case.real, valid=pv),
             "se_refined": gen.spectral_error(np.rint(d.refined), case.real, valid=pv),

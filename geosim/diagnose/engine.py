@@ -29,6 +29,11 @@ as moved objects, :mod:`~geosim.diagnose.stage_objects`), these three in
 :func:`judge_refined`, judged again on the configured Welch blocks where the fit's were
 smaller and the refined simulation is worse there (:func:`~geosim.diagnose.context.whole_extents`) →
 :func:`~geosim.diagnose.stage_summary.make_summary`.
+
+Where the first pass claims a scene change and models it as moved objects, the whole pass
+runs again with those objects painted into the UAV ground
+(:mod:`~geosim.diagnose.stage_painted`), and is kept where its refined simulation fits the
+scene's spectrum better over every valid block.
 """
 
 from __future__ import annotations
@@ -65,6 +70,7 @@ from geosim.diagnose.stage_jpeg_refit import (
     robust_then_exact,
 )
 from geosim.diagnose.stage_noise import estimate_scene_noise, noise_helps
+from geosim.diagnose.stage_painted import painted_inputs, second_pass_better
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
 from geosim.diagnose.stage_register import confirm_shift, coregister, unapplied
 from geosim.diagnose.stage_resampling_coherent import coherent_resampling
@@ -162,21 +168,77 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     """
     inp = make_inputs(real, simulate, q_base, valid, block_px, quantized, gsd_m)
     require_blocks(inp)
+    if q_hi is None:
+        q_hi = max(2.5, 1.3 * q_base)
+    first = _one_pass(inp, rng, q_lo, q_hi, blur_candidates)
+    final, refit = first, None
+    # a claimed change modelled as moved objects: the blurs measured again with the objects
+    # painted into the UAV ground, on the whole scene (stage_painted)
+    painted = (painted_inputs(inp, first.model)
+               if any(c.name == "scene_change" for c in first.claims) else None)
+    if painted is not None:
+        # the noise measured where the ground did not move (painted objects may misfit)
+        second = _one_pass(painted, rng, q_lo, q_hi, blur_candidates,
+                           exclude=locate.regions_mask(first.labels, first.regions, kind=None))
+        refit = second_pass_better(
+            first.ev, inp.valid, (inp.block_px, first.setup.block_px, second.setup.block_px),
+            first.refined, second.refined)
+        if refit is not None and refit["better"]:
+            final, inp = _merge_passes(first, second), painted
+    model, sel, setup, ev, claims = final.model, final.sel, final.setup, final.ev, final.claims
+    summary = make_summary(inp, model, sel, setup, claims, ev, final.refined, final.withdrawn,
+                           resampling_tested="resampling" in blur_candidates,
+                           whole=final.wholes[0] if final.wholes else None)
+    if final is not first:
+        painted_objects = [o.to_json(inp.gsd_m) for o in first.model.objects.objects]
+        summary["refined"]["moved_objects"] = (painted_objects
+                                               + summary["refined"]["moved_objects"])
+    summary["scene_change_refit"] = _refit_json(painted is not None, refit, final is not first,
+                                               first)
+    maps = mismatch_maps(inp, model, final.energy)
+    plots = plot_data(inp, model, sel, setup, ev, final.refined, summary)
+    return Diagnosis(summary=summary, real=inp.real, baseline=inp.base, refined=final.refined,
+                     valid=inp.valid, maps=maps, regions=final.regions, labels=final.labels,
+                     plots=plots)
+
+
+@dataclass
+class _Pass:
+    """One pass of the diagnosis over the scene: the model it keeps, its claims and what
+    the summary, maps and plots are made from."""
+
+    model: ForwardModel
+    sel: BlurSelection
+    setup: SpectralSetup
+    ev: EvalContext
+    claims: list[Claim]
+    refined: np.ndarray
+    withdrawn: list[dict[str, str]]
+    wholes: list[EvalContext]
+    regions: list[locate.Region]
+    labels: np.ndarray
+    energy: np.ndarray
+
+
+def _one_pass(inp: Inputs, rng: np.random.Generator, q_lo: float, q_hi: float,
+              blur_candidates: tuple[str, ...], exclude: np.ndarray | None = None) -> _Pass:
+    """Co-register → locate → attribute → model → refit, once, on ``inp``. ``exclude``:
+    pixels (rows, cols) the noise is not measured on (the first pass's changed regions,
+    where a second pass's painted objects may misfit); None: none."""
     reg = coregister(inp)
     model = ForwardModel(q=inp.q_base, blur={}, registration=reg)
     model = model.without(compression=find_compression(inp, reg))
-    regions0, labels0, _, _ = changed_regions(inp, grey(model.sim_at(simulate)), ratio=8.0)
+    regions0, labels0, _, _ = changed_regions(inp, grey(model.sim_at(inp.simulate)), ratio=8.0)
     fit_mask = inp.valid & ~locate.regions_mask(labels0, regions0, kind=None)
-    if q_hi is None:
-        q_hi = max(2.5, 1.3 * q_base)
     window = FitWindow(mask=fit_mask, q_lo=q_lo, q_hi=q_hi, candidates=blur_candidates,
-                       q_starts=(float(np.clip(q_base, q_lo, q_hi)), 1.5))
+                       q_starts=(float(np.clip(inp.q_base, q_lo, q_hi)), 1.5))
     setup, sel = select_with_q_room(inp, model, window, jpeg_linearised(inp, model, fit_mask))
     model = adopt(model, sel)
     model, setup, sel = joint_jpeg_blur(inp, model, setup, sel, window)
     model, setup, sel = robust_then_exact(inp, model, setup, sel, window)
     model = fit_scene_radiometry(inp, model, fit_mask)
-    model = estimate_scene_noise(inp, model, setup, fit_mask)
+    noise_mask = fit_mask if exclude is None else fit_mask & ~exclude
+    model = estimate_scene_noise(inp, model, setup, noise_mask)
     model, setup, sel = dithered_refit(inp, model, setup, sel, window)
     if model.compression is not None:
         # under JPEG, Q on the delivered spectrum; then the noise read again against that
@@ -185,21 +247,21 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         q_fit = model.q
         model = delivered_q(inp, model, setup)
         if model.q != q_fit:
-            model = delivered_q(inp, estimate_scene_noise(inp, model, setup, fit_mask), setup)
+            model = delivered_q(inp, estimate_scene_noise(inp, model, setup, noise_mask), setup)
     # the global shift measured again against the refined model (the baseline's Q can be
     # far off, and its aliasing then biases the shift)
     reg = confirm_shift(inp, reg, grey(model.without(
-        registration=unapplied(reg), compression=None).deterministic(simulate)))
+        registration=unapplied(reg), compression=None).deterministic(inp.simulate)))
     model = model.without(registration=reg)
     # metrics over the pixels where both images show the same scene: outside every region
     noise_var = model.noise.white_var_dn2 if model.noise is not None else 0.0
-    det = model.deterministic(simulate)
+    det = model.deterministic(inp.simulate)
     plain = det   # the model image before compression
     jpeg_dn2: np.ndarray | float = 0.0
     if model.compression is not None:
         # the real scene's JPEG error and the model's are independent where the pixels
         # differ (noise, texture): their residual carries both, ≈ twice the model's own
-        plain = model.without(compression=None).deterministic(simulate)
+        plain = model.without(compression=None).deterministic(inp.simulate)
         jpeg_dn2 = 2.0 * locate.residual_energy_map(grey(det - plain))
     # and the aliasing of a resampling's native grid, whose phase is unknown
     regions, labels, energy, inner = changed_regions(
@@ -219,7 +281,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         # the resampling's aliasing took the noise's place: the noise judged again
         # against it, by the same rules
         model, withdrawn_again = noise_helps(
-            inp, estimate_scene_noise(inp, model, setup, fit_mask), ev)
+            inp, estimate_scene_noise(inp, model, setup, noise_mask), ev)
         withdrawn_noise = withdrawn_noise + withdrawn_again
     # under noise, a resampling by its aliasing in the pixels, where the spectrum cannot
     model = coherent_resampling(inp, model, sel, setup, ev, window.candidates)
@@ -242,20 +304,47 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
     fit_whole = [w for w in wholes if w.block_px == setup.block_px]
     judged = judge_refined(inp, model, sel, setup, ev, change, found,
                            [w.spectral_error for w in fit_whole])
-    refined = judged.model.delivered(simulate, np.random.default_rng(ev.noise_seed),
+    refined = judged.model.delivered(inp.simulate, np.random.default_rng(ev.noise_seed),
                                      quantized=inp.quantized)
     every = [w.spectral_error for w in wholes]
     if len(wholes) > len(fit_whole) and not delivered_no_worse(inp, ev, every)(refined):
         judged = judge_refined(inp, model, sel, setup, ev, change, found, every)
-        refined = judged.model.delivered(simulate, np.random.default_rng(ev.noise_seed),
+        refined = judged.model.delivered(inp.simulate, np.random.default_rng(ev.noise_seed),
                                          quantized=inp.quantized)
     model, claims = judged.model, judged.claims
     withdrawn = (withdrawn_noise + withdrawn_censored + withdrawn_floor + withdrawn_alias
                  + withdrawn_iso + judged.withdrawn)
-    summary = make_summary(inp, model, sel, setup, claims, ev, refined, withdrawn,
-                           resampling_tested="resampling" in window.candidates,
-                           whole=wholes[0] if wholes else None)
-    maps = mismatch_maps(inp, model, energy)
-    plots = plot_data(inp, model, sel, setup, ev, refined, summary)
-    return Diagnosis(summary=summary, real=inp.real, baseline=inp.base, refined=refined,
-                     valid=inp.valid, maps=maps, regions=regions, labels=labels, plots=plots)
+    return _Pass(model=model, sel=sel, setup=setup, ev=ev, claims=claims, refined=refined,
+                 withdrawn=withdrawn, wholes=wholes, regions=regions, labels=labels,
+                 energy=energy)
+
+
+def _merge_passes(first: _Pass, second: _Pass) -> _Pass:
+    """The second pass (moved objects painted into the ground) as the diagnosis, with the
+    first's account of the change: its ``scene_change`` claim (the objects counted with
+    any the second pass modelled on top) and its changed regions and residual energy
+    (where the ground moved against the UAV image as flown)."""
+    change = next(c for c in first.claims if c.name == "scene_change")
+    n_painted = len(first.model.objects.objects) if first.model.objects is not None else 0
+    n_more = len(second.model.objects.objects) if second.model.objects is not None else 0
+    change = replace(change, params={**change.params, "n_objects_modelled": n_painted + n_more})
+    claims = [c for c in second.claims if c.name != "scene_change"] + [change]
+    return replace(second, claims=claims, regions=first.regions, labels=first.labels,
+                   energy=first.energy)
+
+
+def _refit_json(ran: bool, refit: dict[str, Any] | None, kept: bool, first: _Pass
+                ) -> dict[str, Any]:
+    """``scene_change_refit`` of diagnosis.json: whether a second pass ran with the first
+    pass's moved objects painted into the UAV ground, its measures (None where the valid
+    extent holds too few whole blocks to judge it) and whether it was kept."""
+    n = len(first.model.objects.objects) if ran and first.model.objects is not None else 0
+    out: dict[str, Any] = {"ran": ran, "kept": kept, "n_objects_painted": n}
+    if ran:
+        out["first_pass_effects"] = [c.name for c in first.claims]
+    if refit is not None:
+        out.update(block_px=refit["block_px"], spectral_error_whole=refit["spectral_error_whole"],
+                   note="spectral_error_whole: [first pass, second pass] of the refined "
+                        "simulation as delivered over every valid block, per block_px; "
+                        "the second pass is kept only where it is lower on every one")
+    return out

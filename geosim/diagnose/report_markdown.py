@@ -73,6 +73,7 @@ def diagnosis_markdown(s: dict[str, Any]) -> str:
                      f"the whole scene "
                      f"{s['baseline'].get('spectral_error_whole', float('nan')):.3f} (baseline)"
                      f" → {ref.get('spectral_error_whole', float('nan')):.3f}.")
+    lines += _refit_markdown(s.get("scene_change_refit", {}))
     lines.append("\nMaps: `map_residual_energy.tif`, `map_blur_ratio.tif`, `map_gain.tif`, "
                  "`map_offset.tif`; plots: `transfer_function.png`, `noise_vs_brightness.png`, "
                  "`mismatch_maps.png`.")
@@ -80,6 +81,24 @@ def diagnosis_markdown(s: dict[str, Any]) -> str:
     lines += [f"![{name}]({name}.png)\n" for name in
               ("mismatch_maps", "transfer_function", "noise_vs_brightness")]
     return "\n".join(lines) + "\n"
+
+
+def _refit_markdown(refit: dict[str, Any]) -> list[str]:
+    """The second pass with the moved objects painted into the UAV ground, in words."""
+    if not refit.get("ran"):
+        return []
+    pairs = refit.get("spectral_error_whole") or []
+    errs = ", ".join(f"{a:.3f} → {b:.3f} on {px} px blocks"
+                     for (a, b), px in zip(pairs, refit.get("block_px", []), strict=True))
+    first = ", ".join(f"`{n}`" for n in refit.get("first_pass_effects", [])) or "nothing"
+    if refit.get("kept"):
+        return [f"\nThe blurs were measured again with the {refit['n_objects_painted']} moved "
+                f"objects painted into the UAV ground (whole scene, no blocks lost to the "
+                f"change); that second pass fits better over every valid block ({errs}) and "
+                f"its claims stand (the first pass claimed {first})."]
+    why = f"it fit no better ({errs})" if errs else "too few whole blocks to judge it"
+    return [f"\nA second pass with the {refit['n_objects_painted']} moved objects painted "
+            f"into the UAV ground was not kept: {why}."]
 
 
 def fmt(v: Any) -> str:
