@@ -109,9 +109,9 @@ def test_second_pass_judged_on_every_block_size_over_the_whole_extent():
     blurred = ndimage.gaussian_filter(real, 1.5)
     close = real + rng.normal(0, 0.5, real.shape)
     out = second_pass_better(ev, valid, (32, 16), blurred, close)
-    assert out["better"] and out["block_px"] == [32, 16]
-    assert all(b < a for a, b in out["spectral_error_whole"])
-    assert not second_pass_better(ev, valid, (32, 16), close, blurred)["better"]
+    assert out.better and out.block_px == [32, 16]
+    assert all(b < a for a, b in out.spectral_error_whole)
+    assert not second_pass_better(ev, valid, (32, 16), close, blurred).better
     # too few whole blocks of any size: not judged
     small = np.zeros((128, 128), bool)
     small[:40, :40] = True

@@ -70,7 +70,11 @@ from geosim.diagnose.stage_jpeg_refit import (
     robust_then_exact,
 )
 from geosim.diagnose.stage_noise import estimate_scene_noise, noise_helps
-from geosim.diagnose.stage_painted import painted_inputs, second_pass_better
+from geosim.diagnose.stage_painted import (
+    SecondPassJudgement,
+    painted_inputs,
+    second_pass_better,
+)
 from geosim.diagnose.stage_radiometry import fit_scene_radiometry
 from geosim.diagnose.stage_register import confirm_shift, coregister, unapplied
 from geosim.diagnose.stage_resampling_coherent import coherent_resampling
@@ -183,7 +187,7 @@ def diagnose_arrays(real: np.ndarray, simulate: Callable[[float], np.ndarray], *
         refit = second_pass_better(
             first.ev, inp.valid, (inp.block_px, first.setup.block_px, second.setup.block_px),
             first.refined, second.refined)
-        if refit is not None and refit["better"]:
+        if refit is not None and refit.better:
             final, inp = _merge_passes(first, second), painted
     model, sel, setup, ev, claims = final.model, final.sel, final.setup, final.ev, final.claims
     summary = make_summary(inp, model, sel, setup, claims, ev, final.refined, final.withdrawn,
@@ -333,7 +337,7 @@ def _merge_passes(first: _Pass, second: _Pass) -> _Pass:
                    energy=first.energy)
 
 
-def _refit_json(ran: bool, refit: dict[str, Any] | None, kept: bool, first: _Pass
+def _refit_json(ran: bool, refit: SecondPassJudgement | None, kept: bool, first: _Pass
                 ) -> dict[str, Any]:
     """``scene_change_refit`` of diagnosis.json: whether a second pass ran with the first
     pass's moved objects painted into the UAV ground, its measures (None where the valid
@@ -343,7 +347,8 @@ def _refit_json(ran: bool, refit: dict[str, Any] | None, kept: bool, first: _Pas
     if ran:
         out["first_pass_effects"] = [c.name for c in first.claims]
     if refit is not None:
-        out.update(block_px=refit["block_px"], spectral_error_whole=refit["spectral_error_whole"],
+        out.update(block_px=refit.block_px,
+                   spectral_error_whole=[list(p) for p in refit.spectral_error_whole],
                    note="spectral_error_whole: [first pass, second pass] of the refined "
                         "simulation as delivered over every valid block, per block_px; "
                         "the second pass is kept only where it is lower on every one")

@@ -24,8 +24,7 @@ included) on every block size either pass used (:func:`second_pass_better`).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
-from typing import Any
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -34,7 +33,8 @@ from geosim.diagnose.model import ForwardModel, Registration
 from geosim.diagnose.stage_inputs import Inputs
 from geosim.diagnose.stage_objects import MovedObject, render_ellipse
 
-__all__ = ["uav_position", "paint_objects", "painted_inputs", "second_pass_better"]
+__all__ = ["uav_position", "paint_objects", "painted_inputs", "SecondPassJudgement",
+           "second_pass_better"]
 
 
 def uav_position(reg: Registration | None, centre_px: tuple[float, float]
@@ -110,16 +110,35 @@ def painted_inputs(inp: Inputs, model: ForwardModel) -> Inputs | None:
     return None if sim is None else replace(inp, simulate=sim)
 
 
+@dataclass(frozen=True)
+class SecondPassJudgement:
+    """The two passes' refined simulations judged over every valid block.
+
+    Attributes
+    ----------
+    better : bool
+        Whether the second pass's error is lower at every block size.
+    block_px : list of int
+        The Welch block sizes judged on, pixels.
+    spectral_error_whole : list of tuple of float
+        Per block size, (first pass, second pass) spectral error (dimensionless).
+    """
+
+    better: bool
+    block_px: list[int]
+    spectral_error_whole: list[tuple[float, float]]
+
+
 def second_pass_better(ev: EvalContext, valid: np.ndarray, block_sizes_px: Sequence[int],
-                       first: np.ndarray, second: np.ndarray) -> dict[str, Any] | None:
+                       first: np.ndarray, second: np.ndarray) -> SecondPassJudgement | None:
     """Whether the second pass's refined simulation as delivered (``second``) fits the
     scene's spectrum better than the first's (``first``) over every valid block, the
     changed areas included, on each of ``block_sizes_px`` that holds enough whole blocks
-    (:func:`~geosim.diagnose.context.whole_extents`): ``{"better": bool, "block_px": [...],
-    "spectral_error_whole": [[first, second], ...]}``; None where no size holds enough."""
+    (:func:`~geosim.diagnose.context.whole_extents`); None where no size holds enough."""
     wholes = whole_extents(ev, valid, block_sizes_px)
     if not wholes:
         return None
-    pairs = [[w.spectral_error(first), w.spectral_error(second)] for w in wholes]
-    return {"better": all(b < a for a, b in pairs), "block_px": [w.block_px for w in wholes],
-            "spectral_error_whole": pairs}
+    pairs = [(w.spectral_error(first), w.spectral_error(second)) for w in wholes]
+    return SecondPassJudgement(better=all(b < a for a, b in pairs),
+                               block_px=[w.block_px for w in wholes],
+                               spectral_error_whole=pairs)
