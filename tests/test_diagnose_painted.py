@@ -70,9 +70,12 @@ def test_painted_object_keeps_its_mass_and_lands_where_the_registration_puts_it(
     n = 64
     uav = _ground(n)
     shift = (1.3, -0.7)
-    layer = paint_objects(uav.shape[-2:], [OBJECT], phi=PHI, gain=GAIN, reg=_shifted(shift))
+    before = uav.copy()
+    img = paint_objects(uav, [OBJECT], phi=PHI, gain=GAIN, reg=_shifted(shift))
+    np.testing.assert_array_equal(uav, before)   # the input is not modified
+    assert img.dtype == np.float32 and img.shape == uav.shape
     sim = QSimulator(uav, phi=PHI, q_min=0.6)
-    painted = sim.painted(layer)
+    painted = sim.with_image(img)
     diff = painted(q) - sim(q)
     area = np.pi * OBJECT.semi_axes_px[0] * OBJECT.semi_axes_px[1]
     for b in range(3):
@@ -93,9 +96,32 @@ def test_painted_object_keeps_its_mass_and_lands_where_the_registration_puts_it(
 def test_painted_with_nothing_is_the_same_simulation():
     uav = _ground(32)
     sim = QSimulator(uav, phi=PHI, q_min=0.6)
-    assert sim.fine_shape == (32 * PHI, 32 * PHI)
-    same = sim.painted(np.zeros((3, *uav.shape[-2:])))
+    img = paint_objects(uav, [], phi=PHI, gain=GAIN)
+    np.testing.assert_array_equal(img, uav)
+    # an object wholly outside the image paints nothing either
+    away = MovedObject(centre_px=(-40.0, -40.0), semi_axes_px=(2.0, 1.0), angle_deg=0.0,
+                       contrast_dn=(50.0, 50.0, 50.0), rss_drop=0.5)
+    np.testing.assert_array_equal(paint_objects(uav, [away], phi=PHI, gain=GAIN), uav)
+    same = sim.with_image(img)
+    assert same.image is img
     np.testing.assert_array_equal(same(2.0), sim(2.0))
+
+
+def test_paint_only_within_the_objects_box_and_as_a_full_frame_sum():
+    from geosim.diagnose.stage_objects import render_ellipse
+
+    uav = _ground(32)
+    objs = [OBJECT, MovedObject(centre_px=(10.2, 20.7), semi_axes_px=(1.5, 0.8), angle_deg=100.0,
+                                contrast_dn=(-30.0, -20.0, -10.0), rss_drop=0.3)]
+    img = paint_objects(uav, objs, phi=PHI, gain=GAIN)
+    full = np.asarray(uav, float)
+    for o in objs:
+        full = full + (np.asarray(o.contrast_dn) / GAIN)[:, None, None] * render_ellipse(
+            uav.shape[-2:], (o.centre_px[0] * PHI, o.centre_px[1] * PHI),
+            (o.semi_axes_px[0] * PHI, o.semi_axes_px[1] * PHI), o.angle_deg)
+    np.testing.assert_allclose(img, full.astype(np.float32), rtol=0, atol=1e-4)
+    # far from both objects the image is the UAV's, bit for bit
+    np.testing.assert_array_equal(img[:, :50, 200:], uav[:, :50, 200:])
 
 
 def test_second_pass_judged_on_every_block_size_over_the_whole_extent():

@@ -112,22 +112,17 @@ class QSimulator:
         return self._cache[key]
 
     @property
-    def fine_shape(self) -> tuple[int, int] | None:
-        """(rows, cols) of the UAV image on the fine grid; None when no image is kept."""
-        return None if self.uav is None else tuple(self.uav.shape[-2:])  # type: ignore[return-value]
+    def image(self) -> np.ndarray | None:
+        """The UAV image on the fine grid as given (None when no image is kept)."""
+        return self.uav
 
-    def painted(self, layer: np.ndarray) -> QSimulator | None:
-        """A simulator of the UAV image with ``layer`` (bands first or 2-D, on the fine
-        grid, DN) added: ground that changed between the flight and the satellite pass
-        (:func:`geosim.diagnose.stage_painted.paint_objects`), rendered by every Q, blur,
-        shift and native resampling as the ground is. ``None`` when no image is kept."""
-        if self.uav is None:
-            return None
-        img = np.asarray(self.uav, float)
-        img = img[np.newaxis] if img.ndim == 2 else img
-        return QSimulator((img + np.asarray(layer, float).reshape(img.shape[0], *img.shape[-2:])
-                           ).astype(np.float32), phi=self.phi, valid=self.valid,
-                          q_min=self.q_min)
+    def with_image(self, image: np.ndarray) -> QSimulator:
+        """A simulator of ``image`` (the same grid: bands first or 2-D, on this one's fine
+        grid, DN) with this one's φ, valid mask and Q floor — e.g. the UAV image with the
+        ground that changed before the satellite pass painted in
+        (:func:`geosim.diagnose.stage_painted.paint_objects`), which every Q, blur, shift
+        and native resampling then renders as it renders the ground."""
+        return QSimulator(image, phi=self.phi, valid=self.valid, q_min=self.q_min)
 
     def shifted(self, shift_px: tuple[float, float]) -> QSimulator | None:
         """The same simulator for the UAV image moved by ``shift_px`` (d_col, d_row) pixels

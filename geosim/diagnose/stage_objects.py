@@ -30,7 +30,7 @@ from geosim.diagnose.effects import lsi_transfers
 from geosim.physics import otf
 
 __all__ = ["MovedObject", "SceneObjects", "fit_moved_objects", "render_ellipse",
-           "SUPERSAMPLE", "MIN_OBJECT_CHI2", "MAX_OBJECTS_PER_REGION",
+           "ellipse_patch", "SUPERSAMPLE", "MIN_OBJECT_CHI2", "MAX_OBJECTS_PER_REGION",
            "REGION_PX_PER_OBJECT"]
 
 #: fine samples per product pixel along each axis (odd: the central one is the pixel centre;
@@ -111,8 +111,20 @@ def render_ellipse(shape_fine: tuple[int, int], centre_fine: tuple[float, float]
 
     Coordinates in fine pixels, pixel centres at k + 0.5; ``centre_fine`` is (col, row).
     """
-    rows, cols = shape_fine
     out = np.zeros(shape_fine)
+    patch = ellipse_patch(shape_fine, centre_fine, semi_axes_fine, angle_deg)
+    if patch is not None:
+        r0, c0, values = patch
+        out[r0:r0 + values.shape[0], c0:c0 + values.shape[1]] = values
+    return out
+
+
+def ellipse_patch(shape_fine: tuple[int, int], centre_fine: tuple[float, float],
+                  semi_axes_fine: tuple[float, float], angle_deg: float
+                  ) -> tuple[int, int, np.ndarray] | None:
+    """:func:`render_ellipse` within the ellipse's bounding box only: (row0, col0, values);
+    None where the box lies outside the grid (every value there is 0)."""
+    rows, cols = shape_fine
     t = np.deg2rad(angle_deg)
     a, b = semi_axes_fine
     # only the ellipse's bounding box, 2 fine pixels wider: beyond it every pixel is at
@@ -124,7 +136,7 @@ def render_ellipse(shape_fine: tuple[int, int], centre_fine: tuple[float, float]
     c0 = int(np.clip(np.floor(centre_fine[0] - half_c), 0, cols))
     c1 = int(np.clip(np.ceil(centre_fine[0] + half_c), 0, cols))
     if r1 <= r0 or c1 <= c0:
-        return out
+        return None
     y = np.arange(r0, r1)[:, None] + 0.5 - centre_fine[1]
     x = np.arange(c0, c1)[None, :] + 0.5 - centre_fine[0]
     # rows grow southwards: the angle is anticlockwise on the map (east towards north)
@@ -134,8 +146,7 @@ def render_ellipse(shape_fine: tuple[int, int], centre_fine: tuple[float, float]
     # signed distance to the edge ≈ (ρ − 1) · the ellipse's radius along that direction,
     # √(u² + v²) / ρ
     radius = np.sqrt(u ** 2 + v ** 2) / np.maximum(rho, 1e-12)
-    out[r0:r1, c0:c1] = np.clip(0.5 - (rho - 1.0) * radius, 0.0, 1.0)
-    return out
+    return r0, c0, np.clip(0.5 - (rho - 1.0) * radius, 0.0, 1.0)
 
 
 class _Window:

@@ -31,7 +31,7 @@ import numpy as np
 from geosim.diagnose.context import EvalContext, whole_extents
 from geosim.diagnose.model import ForwardModel, Registration
 from geosim.diagnose.stage_inputs import Inputs
-from geosim.diagnose.stage_objects import MovedObject, render_ellipse
+from geosim.diagnose.stage_objects import MovedObject, ellipse_patch
 
 __all__ = ["uav_position", "paint_objects", "painted_inputs", "SecondPassJudgement",
            "second_pass_better"]
@@ -55,14 +55,15 @@ def uav_position(reg: Registration | None, centre_px: tuple[float, float]
     return col - float(reg.shift_px[0]), row - float(reg.shift_px[1])
 
 
-def paint_objects(shape_fine: tuple[int, int], objects: Sequence[MovedObject], *, phi: int,
+def paint_objects(uav: np.ndarray, objects: Sequence[MovedObject], *, phi: int,
                   gain: np.ndarray, reg: Registration | None = None) -> np.ndarray:
-    """The layer the moved ``objects`` add to the UAV image, on its fine grid (DN).
+    """The UAV image with the moved ``objects`` painted in (DN, a float32 copy).
 
     Parameters
     ----------
-    shape_fine
-        (rows, cols) of the UAV image (``phi`` fine pixels per product pixel).
+    uav
+        The UAV image, bands first, on its fine grid (``phi`` fine pixels per product
+        pixel); not modified.
     objects
         Moved objects in the real scene's product-pixel coordinates, their contrast per
         band in the scene's DN (after the model's radiometry).
@@ -77,37 +78,57 @@ def paint_objects(shape_fine: tuple[int, int], objects: Sequence[MovedObject], *
     Returns
     -------
     numpy.ndarray
-        (bands, rows, cols) float64: Σ contrast / gain × the object's indicator, edges
-        antialiased over one fine pixel (:func:`~geosim.diagnose.stage_objects.render_ellipse`).
+        ``uav`` + Σ contrast / gain × each object's indicator (edges antialiased over one
+        fine pixel, :func:`~geosim.diagnose.stage_objects.ellipse_patch`), summed in
+        float64 within the objects' bounding box only (a whole orthomosaic window is never
+        copied in float64).
     """
     g = np.asarray(gain, float)
-    layer = np.zeros((g.size, *shape_fine))
+    shape_fine = tuple(uav.shape[-2:])
+    patches = []
     for o in objects:
         col, row = uav_position(reg, o.centre_px)
-        ind = render_ellipse(shape_fine, (col * phi, row * phi),
-                             (o.semi_axes_px[0] * phi, o.semi_axes_px[1] * phi), o.angle_deg)
-        layer += (np.asarray(o.contrast_dn, float) / g)[:, None, None] * ind
-    return layer
+        patch = ellipse_patch(shape_fine, (col * phi, row * phi),  # type: ignore[arg-type]
+                              (o.semi_axes_px[0] * phi, o.semi_axes_px[1] * phi), o.angle_deg)
+        if patch is not None:
+            patches.append((np.asarray(o.contrast_dn, float) / g, patch))
+    out = np.array(uav, dtype=np.float32, copy=True)
+    if not patches:
+        return out
+    r_lo = min(p[0] for _, p in patches)
+    c_lo = min(p[1] for _, p in patches)
+    r_hi = max(p[0] + p[2].shape[0] for _, p in patches)
+    c_hi = max(p[1] + p[2].shape[1] for _, p in patches)
+    layer = np.zeros((g.size, r_hi - r_lo, c_hi - c_lo))
+    for coef, (r0, c0, values) in patches:
+        h, w = values.shape
+        layer[:, r0 - r_lo:r0 - r_lo + h, c0 - c_lo:c0 - c_lo + w] += \
+            coef[:, None, None] * values
+    box = (slice(None), slice(r_lo, r_hi), slice(c_lo, c_hi))
+    out[box] = (np.asarray(uav[box], float) + layer).astype(np.float32)
+    return out
 
 
 def painted_inputs(inp: Inputs, model: ForwardModel) -> Inputs | None:
     """``inp`` with the paper's model rendered from the UAV image with ``model``'s moved
     objects painted in (:func:`paint_objects`; the baseline stays the unpainted one);
-    None where the model holds no objects or the simulator cannot repaint its image
-    (it has no ``painted`` method or keeps no image)."""
+    None where the model holds no objects or the simulator cannot render another image
+    on its grid (it has no ``with_image`` or keeps no image)."""
     if model.objects is None or not model.objects.objects:
         return None
-    painted = getattr(inp.simulate, "painted", None)
-    shape_fine = getattr(inp.simulate, "fine_shape", None)
-    if not callable(painted) or shape_fine is None:
+    with_image = getattr(inp.simulate, "with_image", None)
+    uav = getattr(inp.simulate, "image", None)
+    if not callable(with_image) or uav is None:
         return None
+    uav = np.asarray(uav)
+    uav = uav[np.newaxis] if uav.ndim == 2 else uav
     n_bands = inp.real.shape[0]
     gain = (model.radiometry.gain_offset(n_bands)[0] if model.radiometry is not None
             else np.ones(n_bands))
-    sim = painted(paint_objects(shape_fine, model.objects.objects,
-                                phi=int(inp.simulate.phi),  # type: ignore[attr-defined]
-                                gain=gain, reg=model.registration))
-    return None if sim is None else replace(inp, simulate=sim)
+    painted = paint_objects(uav, model.objects.objects,
+                            phi=int(inp.simulate.phi),  # type: ignore[attr-defined]
+                            gain=gain, reg=model.registration)
+    return replace(inp, simulate=with_image(painted))
 
 
 @dataclass(frozen=True)
