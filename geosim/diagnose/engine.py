@@ -133,8 +133,7 @@ def judge_refined(inp: Inputs, model: ForwardModel, sel: BlurSelection, setup: S
         model = model_moved_objects(inp, model, change, ev, se_wholes)
         for c in claims:
             if c.name == "scene_change":
-                c.params["n_objects_modelled"] = (len(model.objects.objects)
-                                                  if model.objects is not None else 0)
+                c.params["n_objects_modelled"] = model.n_objects
     return JudgedRefinement(model=model, withdrawn=withdrawn, claims=claims)
 
 
@@ -329,9 +328,8 @@ def _merge_passes(first: _Pass, second: _Pass) -> _Pass:
     any the second pass modelled on top) and its changed regions and residual energy
     (where the ground moved against the UAV image as flown)."""
     change = next(c for c in first.claims if c.name == "scene_change")
-    n_painted = len(first.model.objects.objects) if first.model.objects is not None else 0
-    n_more = len(second.model.objects.objects) if second.model.objects is not None else 0
-    change = replace(change, params={**change.params, "n_objects_modelled": n_painted + n_more})
+    change = replace(change, params={
+        **change.params, "n_objects_modelled": first.model.n_objects + second.model.n_objects})
     claims = [c for c in second.claims if c.name != "scene_change"] + [change]
     return replace(second, claims=claims, regions=first.regions, labels=first.labels,
                    energy=first.energy)
@@ -342,8 +340,8 @@ def _refit_json(ran: bool, refit: SecondPassJudgement | None, kept: bool, first:
     """``scene_change_refit`` of diagnosis.json: whether a second pass ran with the first
     pass's moved objects painted into the UAV ground, its measures (None where the valid
     extent holds too few whole blocks to judge it) and whether it was kept."""
-    n = len(first.model.objects.objects) if ran and first.model.objects is not None else 0
-    out: dict[str, Any] = {"ran": ran, "kept": kept, "n_objects_painted": n}
+    out: dict[str, Any] = {"ran": ran, "kept": kept,
+                           "n_objects_painted": first.model.n_objects if ran else 0}
     if ran:
         out["first_pass_effects"] = [c.name for c in first.claims]
     if refit is not None:

@@ -37,8 +37,7 @@ def grey_expected(inp: Inputs, m: ForwardModel) -> np.ndarray:
         return grey(m.deterministic(inp.simulate))
     n_bands = uav.shape[0] if uav.ndim == 3 else 1
     w = luma_weights(n_bands)
-    gain, offset = (m.radiometry.gain_offset(n_bands) if m.radiometry is not None
-                    else (np.ones(n_bands), np.zeros(n_bands)))
+    gain, offset = m.gain_offset(n_bands)
     one = weighted(tuple(w * gain))
     if one is None:
         return grey(m.deterministic(inp.simulate))

@@ -227,6 +227,18 @@ class ForwardModel:
     #: (:mod:`geosim.diagnose.stage_objects`); None: the ground as the UAV saw it
     objects: SceneObjects | None = None
 
+    @property
+    def n_objects(self) -> int:
+        """How many moved objects the model holds (0 without any)."""
+        return len(self.objects.objects) if self.objects is not None else 0
+
+    def gain_offset(self, n_bands: int) -> tuple[np.ndarray, np.ndarray]:
+        """(gain, offset DN) per band of the model's radiometry
+        (:meth:`RadiometryChoice.gain_offset`); 1 and 0 without one."""
+        if self.radiometry is None:
+            return np.ones(n_bands), np.zeros(n_bands)
+        return self.radiometry.gain_offset(n_bands)
+
     def sim_at(self, simulate: Callable[[float], np.ndarray], q: float | None = None, *,
                compressed: bool = True) -> np.ndarray:
         """Paper's model at ``q`` (default: the model's), moved and (unless ``compressed``

@@ -122,12 +122,10 @@ def painted_inputs(inp: Inputs, model: ForwardModel) -> Inputs | None:
         return None
     uav = np.asarray(uav)
     uav = uav[np.newaxis] if uav.ndim == 2 else uav
-    n_bands = inp.real.shape[0]
-    gain = (model.radiometry.gain_offset(n_bands)[0] if model.radiometry is not None
-            else np.ones(n_bands))
     painted = paint_objects(uav, model.objects.objects,
                             phi=int(inp.simulate.phi),  # type: ignore[attr-defined]
-                            gain=gain, reg=model.registration)
+                            gain=model.gain_offset(inp.real.shape[0])[0],
+                            reg=model.registration)
     return replace(inp, simulate=with_image(painted))
 
 
