@@ -187,6 +187,21 @@ def test_native_sampling_reused_across_kernels_gives_the_fresh_render():
             assert np.array_equal(got, fresh), (q, pitch, a)
 
 
+def test_native_row_step_reused_across_column_phases_gives_the_fresh_render():
+    """QSimulator.native keeps the native rows' step of a row phase for the next column
+    phase (the phase scans render every column phase of a row phase in turn): every
+    render equals that of a simulator that never rendered before."""
+    img = _ground(8, 48)
+    sim = QSimulator(img, phi=gen.PHI, q_min=0.5)
+    calls = [(1.4, (0.0, 0.0)), (1.4, (0.0, 0.5)), (1.4, (0.0, 0.9)), (1.4, (0.5, 0.9)),
+             (1.4, (0.5, 0.0)), (1.45, (0.5, 0.0)), (1.4, (0.0, 0.5)), (1.4, (0.5, 0.5))]
+    for q in (1.2, 2.0):
+        for pitch, phase in calls:
+            got = sim.native(q, pitch, phase_px=phase)
+            fresh = QSimulator(img, phi=gen.PHI, q_min=0.5).native(q, pitch, phase_px=phase)
+            assert np.array_equal(got, fresh), (q, pitch, phase)
+
+
 def test_noise_realisations_render_the_model_once_with_the_same_arrays():
     """ForwardModel.delivered_realisations gives the arrays separate ``delivered`` calls
     give (the deterministic part rendered once, not modified by the noise)."""

@@ -137,6 +137,31 @@ def test_phase_harmonics_give_the_renders_at_any_phase():
     assert at - min(direct.values()) < 0.05 * spread
 
 
+def test_phase_harmonics_rss_is_that_of_the_interpolated_residuals():
+    """The RSS phase_harmonics reports is the sum of squares of the residual images that
+    first-harmonic trigonometric interpolation makes at its phase (each pixel's nine
+    Fourier coefficients over the scanned phases evaluated there, written out here), and
+    no other of the PHASE_FINE² phases gives a lower one."""
+    rng = np.random.default_rng(3)
+    n, steps, fine_n, pitch = 500, coherent.PHASE_STEPS, coherent.PHASE_FINE, 1.37
+    res = rng.normal(size=(steps, steps, n)) + 4.0 * rng.normal(size=n)
+    rss, (pr, pc) = coherent.phase_harmonics(res, pitch)
+    c = np.fft.fft2(res, axes=(0, 1)) / steps ** 2
+    harmonics = (0, 1, -1)                     # np.fft order for three steps
+
+    def at(phase_r: float, phase_c: float) -> float:
+        img = np.zeros(n, dtype=complex)
+        for a, ha in enumerate(harmonics):
+            for b, hb in enumerate(harmonics):
+                img += c[a, b] * np.exp(2j * np.pi * (ha * phase_r + hb * phase_c) / pitch)
+        return float(np.sum(img.real ** 2))
+
+    grid = np.arange(fine_n) * pitch / fine_n
+    every = {(a, b): at(a, b) for a in grid for b in grid}
+    assert rss == pytest.approx(at(pr, pc), rel=1e-10)
+    assert rss <= min(every.values()) * (1 + 1e-10)
+
+
 @pytest.mark.parametrize("truth,q,seed,start_pitch,start_a,passes", [
     # a true resampling (the generator's pitch 120 / 83 px)
     ({"resampling": {"native_pitch_px": 1.45}, "sensor_noise": NOISE}, 3.0, 31, 1.4458,

@@ -21,7 +21,7 @@ from geosim.diagnose.alias_cells import iter_cell_parts
 from geosim.physics import otf
 from geosim.physics.cubic import OPENCV_A
 from geosim.physics.geometry import AffineField, fourier_shift, warp_to_fine_grid
-from geosim.physics.native_grid import native_area_dct, native_to_product
+from geosim.physics.native_grid import native_cols_dct, native_rows_dct, native_to_product
 from geosim.physics.otf import TransferFunction
 from geosim.physics.radiometry import luma
 
@@ -70,6 +70,8 @@ class QSimulator:
         self._native_fine: tuple[object, np.ndarray] | None = None
         self._native_low: tuple[object, tuple[np.ndarray, np.ndarray, np.ndarray]] | None \
             = None
+        #: (key, the native rows' step of the last native sampling and their centres)
+        self._native_rows: tuple[object, tuple[np.ndarray, np.ndarray]] | None = None
         self._native_coef: tuple[object, np.ndarray] | None = None
         self._alias: tuple[object, dict[tuple[int, int], tuple[QSimulator, QSimulator]]] | None \
             = None
@@ -265,16 +267,22 @@ class QSimulator:
             # digits would otherwise render as whichever came first
             otf_k = optics_otf_below_cutoff(coef.shape[-2:], q=ck[0], phi=self.phi)
             self._native_fine = (ck, coef[:, :otf_k.shape[0], :otf_k.shape[1]] * otf_k)
-            self._native_low = None
+            self._native_low = self._native_rows = None
         band_coef = self._native_fine[1]
         fine_shape = self._native_coef[1].shape[-2:]   # type: ignore[index]
         # the native sampling kept for the next call: the kernel scans render each pitch
-        # with both cubic kernels, one after the other
-        nk = (ck, round(float(native_pitch_px), 9), round(float(phase_px[0]), 9),
-              round(float(phase_px[1]), 9))
+        # with both cubic kernels, one after the other; and its row step, which the phase
+        # scans share between the column phases of a row phase (the same products)
+        rk = (ck, round(float(native_pitch_px), 9), round(float(phase_px[0]), 9))
+        nk = (*rk, round(float(phase_px[1]), 9))
         if self._native_low is None or self._native_low[0] != nk:
-            self._native_low = (nk, native_area_dct(band_coef, fine_shape, self.phi,
-                                                    native_pitch_px, phase_px))
+            if self._native_rows is None or self._native_rows[0] != rk:
+                self._native_rows = (rk, native_rows_dct(band_coef, fine_shape[0], self.phi,
+                                                         native_pitch_px, phase_px[0]))
+            rows_step, cr = self._native_rows[1]
+            nat, cc = native_cols_dct(rows_step, fine_shape[1], self.phi, native_pitch_px,
+                                      phase_px[1])
+            self._native_low = (nk, (nat, cr, cc))
         nat, cr, cc = self._native_low[1]
         rows, cols = fine_shape[0] // self.phi, fine_shape[1] // self.phi
         return native_to_product(nat, cr, cc, (rows, cols), cubic_a)

@@ -29,6 +29,7 @@ missed scored negative on most halves; 12 of them pass now.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -309,15 +310,33 @@ def phase_harmonics(residuals: np.ndarray, pitch_px: float) -> tuple[float, tupl
     -------
     rss, (phase_row_px, phase_col_px)
     """
-    coef = np.fft.fft2(residuals, axes=(0, 1)) / PHASE_STEPS ** 2
-    harmonic = np.fft.fftfreq(PHASE_STEPS, 1.0 / PHASE_STEPS)        # 0, 1, -1
-    t = np.arange(PHASE_FINE) * PHASE_STEPS / PHASE_FINE               # in phase steps
-    e = np.exp(2j * np.pi * np.outer(t, harmonic) / PHASE_STEPS)      # (fine, harmonics)
-    fine = np.einsum("ta,sb,abn->tsn", e, e, coef, optimize=True).real
-    rss = np.sum(fine ** 2, axis=-1)
+    # the interpolated residual at each fine phase is a fixed real combination of the
+    # PHASE_STEPS² residuals, so its RSS is a quadratic form in their Gram matrix: no
+    # fine-phase residual images are made (the same sums, in another order)
+    n_steps = PHASE_STEPS ** 2
+    flat = residuals.reshape(n_steps, -1)
+    weights = _phase_weights()                                        # (fine², steps²)
+    gram = flat @ flat.T
+    rss = np.einsum("fm,mp,fp->f", weights, gram, weights).reshape(PHASE_FINE, PHASE_FINE)
     j, k = np.unravel_index(int(np.argmin(rss)), rss.shape)
     step = pitch_px / PHASE_FINE
     return float(rss[j, k]), (float(j * step), float(k * step))
+
+
+@lru_cache(maxsize=1)
+def _phase_weights() -> np.ndarray:
+    """(PHASE_FINE², PHASE_STEPS²) real weights of the first-harmonic trigonometric
+    interpolation of :func:`phase_harmonics`: row t · PHASE_FINE + s gives the value at fine
+    phases (t, s) from the values at the PHASE_STEPS² scanned phases (row-major)."""
+    harmonic = np.fft.fftfreq(PHASE_STEPS, 1.0 / PHASE_STEPS)        # 0, 1, -1
+    t = np.arange(PHASE_FINE) * PHASE_STEPS / PHASE_FINE               # in phase steps
+    e = np.exp(2j * np.pi * np.outer(t, harmonic) / PHASE_STEPS)      # (fine, harmonics)
+    basis = np.eye(PHASE_STEPS ** 2).reshape(PHASE_STEPS, PHASE_STEPS, -1)
+    coef = np.fft.fft2(basis, axes=(0, 1)) / PHASE_STEPS ** 2
+    w = np.einsum("ta,sb,abm->tsm", e, e, coef).real
+    w = w.reshape(PHASE_FINE ** 2, PHASE_STEPS ** 2)
+    w.setflags(write=False)
+    return w
 
 
 def phase_mean(inp: Inputs, m: ForwardModel) -> np.ndarray:

@@ -28,8 +28,8 @@ from geosim.physics.cubic import OPENCV_A, cubic_weights
 #: phase of the other axis, and both cubic kernels: the same matrices many times)
 AXIS_CACHE = 64
 
-__all__ = ["native_edges", "native_area", "native_area_dct", "native_to_product",
-           "render_through_native"]
+__all__ = ["native_edges", "native_area", "native_area_dct", "native_rows_dct",
+           "native_cols_dct", "native_to_product", "render_through_native"]
 
 
 def native_edges(n_px: int, native_pitch_px: float, phase_px: float) -> np.ndarray:
@@ -99,8 +99,10 @@ def _dct_box_matrix(edges: np.ndarray, n: int, n_coef: int) -> np.ndarray:
     k = np.arange(n_coef)[np.newaxis, :]
     s0, s1 = edges[:-1, np.newaxis], edges[1:, np.newaxis]
     width = np.maximum(s1 - s0, 1e-12)
+    # the sines at every edge once: a native pixel's far edge is the next one's near edge
+    sines = np.sin(np.pi * k * edges[:, np.newaxis] / n)
     with np.errstate(divide="ignore", invalid="ignore"):
-        mean = np.where(k == 0, 1.0, n * (np.sin(np.pi * k * s1 / n) - np.sin(np.pi * k * s0 / n))
+        mean = np.where(k == 0, 1.0, n * (sines[1:] - sines[:-1])
                         / (np.pi * np.maximum(k, 1) * width))
     return np.where(k == 0, np.sqrt(1.0 / n), np.sqrt(2.0 / n)) * mean
 
@@ -112,14 +114,35 @@ def native_area_dct(coef: np.ndarray, fine_shape: tuple[int, int], phi: int,
     ``coef`` (..., K_rows, K_cols; the rest zero, as past the optics' cut-off), the image
     continued between pixel centres by its cosine series (the band-limited image the
     optics make, where :func:`native_area` takes each fine pixel as constant). Two small
-    matrix products per band instead of an inverse transform of the fine image.
+    matrix products per band instead of an inverse transform of the fine image
+    (:func:`native_rows_dct` then :func:`native_cols_dct`).
 
     ``fine_shape``: (rows, cols) of the fine image, pixels; the scene is its first
     (rows // phi) · phi × (cols // phi) · phi pixels."""
-    n_r, n_c = int(fine_shape[0]), int(fine_shape[1])
-    mr, cr = _axis_box(n_r, phi, float(native_pitch_px), float(phase_px[0]), coef.shape[-2])
-    mc, cc = _axis_box(n_c, phi, float(native_pitch_px), float(phase_px[1]), coef.shape[-1])
-    return mr @ coef @ mc.T, cr, cc
+    rows, cr = native_rows_dct(coef, int(fine_shape[0]), phi, native_pitch_px, phase_px[0])
+    nat, cc = native_cols_dct(rows, int(fine_shape[1]), phi, native_pitch_px, phase_px[1])
+    return nat, cr, cc
+
+
+def native_rows_dct(coef: np.ndarray, n_rows_fine: int, phi: int, native_pitch_px: float,
+                    phase_row_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The row step of :func:`native_area_dct`: each native row's mean of the cosine
+    series ``coef`` (..., K_rows, K_cols) → (..., n_native_rows, K_cols), and the native
+    rows' centres (product px). Kept by callers that render one native row phase with
+    several column phases (:meth:`geosim.diagnose.simulate.QSimulator.native`)."""
+    mr, cr = _axis_box(int(n_rows_fine), phi, float(native_pitch_px), float(phase_row_px),
+                       coef.shape[-2])
+    return mr @ coef, cr
+
+
+def native_cols_dct(rows: np.ndarray, n_cols_fine: int, phi: int, native_pitch_px: float,
+                    phase_col_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The column step of :func:`native_area_dct` on :func:`native_rows_dct`'s ``rows``
+    (..., n_native_rows, K_cols): the native samples (..., n_native_rows, n_native_cols)
+    and the native columns' centres (product px)."""
+    mc, cc = _axis_box(int(n_cols_fine), phi, float(native_pitch_px), float(phase_col_px),
+                       rows.shape[-1])
+    return rows @ mc.T, cc
 
 
 @lru_cache(maxsize=AXIS_CACHE)
