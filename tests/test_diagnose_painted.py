@@ -103,7 +103,7 @@ def test_painted_with_nothing_is_the_same_simulation():
                        contrast_dn=(50.0, 50.0, 50.0), rss_drop=0.5)
     np.testing.assert_array_equal(paint_objects(uav, [away], phi=PHI, gain=GAIN), uav)
     same = sim.with_image(img)
-    assert same.image is img
+    assert same.uav is img
     np.testing.assert_array_equal(same(2.0), sim(2.0))
 
 

@@ -113,11 +113,6 @@ class QSimulator:
                 self._cache[key] = paper_model(self.uav, q=key, phi=self.phi, valid=self.valid)
         return self._cache[key]
 
-    @property
-    def image(self) -> np.ndarray | None:
-        """The UAV image on the fine grid as given (None when no image is kept)."""
-        return self.uav
-
     def with_image(self, image: np.ndarray) -> QSimulator:
         """A simulator of ``image`` (the same grid: bands first or 2-D, on this one's fine
         grid, DN) with this one's φ, valid mask and Q floor — e.g. the UAV image with the

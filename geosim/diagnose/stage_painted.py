@@ -114,10 +114,10 @@ def painted_inputs(inp: Inputs, model: ForwardModel) -> Inputs | None:
     objects painted in (:func:`paint_objects`; the baseline stays the unpainted one);
     None where the model holds no objects or the simulator cannot render another image
     on its grid (it has no ``with_image`` or keeps no image)."""
-    if model.objects is None or not model.objects.objects:
+    if model.n_objects == 0:
         return None
     with_image = getattr(inp.simulate, "with_image", None)
-    uav = getattr(inp.simulate, "image", None)
+    uav = getattr(inp.simulate, "uav", None)
     if not callable(with_image) or uav is None:
         return None
     uav = np.asarray(uav)
