@@ -51,6 +51,7 @@ from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.select import BlurSelection
 from geosim.diagnose.spectra import block_origins
 from geosim.diagnose.stage_aliasing import aliasing_test
+from geosim.diagnose.stage_anisotropic_pixels import pixel_anisotropic
 from geosim.diagnose.stage_blur import SpectralSetup, adopt, select_with_q_room
 from geosim.diagnose.stage_change import (
     MIN_REGION_DN2,
@@ -290,6 +291,8 @@ def _one_pass(inp: Inputs, rng: np.random.Generator, q_lo: float, q_hi: float,
     model = coherent_resampling(inp, model, sel, setup, ev, window.candidates)
     # beside a resampling, an isotropic roll-off by its trace in the pixels
     model = pixel_isotropic(inp, model, sel, setup, ev, window.candidates)
+    # where the model holds no blur and no JPEG, a lone anisotropic blur by its pixels
+    model = pixel_anisotropic(inp, model, sel, setup, ev, window.candidates)
     # under JPEG at high Q, a resampling kept only where the quantisation intervals want it;
     # then a blur by those intervals, where the transfer cannot (not the one just withdrawn)
     model, withdrawn_censored = censored_resampling_check(inp, model, window, ev)

@@ -54,7 +54,7 @@ __all__ = ["coherent_resampling", "CoherentScan", "coherent_scan", "COHERENT_MIN
            "PHASE_STEPS", "Q_SCAN", "REFINE_STARTS", "REFINE_EVALUATIONS", "LOCAL_PITCH_OFFSETS",
            "LOCAL_PHASE_STEPS", "refine_resampled", "COHERENT_PITCHES", "PHASE_FINE",
            "phase_harmonics", "checker_halves", "CHECKER_PX", "phase_mean", "aliasing_dchi2",
-           "ALIAS_MIN_DCHI2", "MEAN_PHASE_STEPS",
+           "ALIAS_MIN_DCHI2", "MEAN_PHASE_STEPS", "top_bottom_halves",
            "eval_halves", "rss_on_halves", "heldout_drop", "heldout_gain", "append_pixel_step"]
 
 #: held-out drop of the residual sum of squares a resampling must bring, in units of the
@@ -216,6 +216,13 @@ def eval_halves(ev: EvalContext) -> list[np.ndarray] | None:
     right of the middle column; None when a half holds none."""
     mask = _trimmed(ev)
     return _split(mask, np.arange(mask.shape[1])[np.newaxis, :] < mask.shape[1] // 2)
+
+
+def top_bottom_halves(ev: EvalContext) -> list[np.ndarray] | None:
+    """The evaluation pixels (``ev.mask`` less :data:`EDGE_PX` at each edge) above and
+    below the middle row; None when a half holds none."""
+    mask = _trimmed(ev)
+    return _split(mask, np.arange(mask.shape[0])[:, np.newaxis] < mask.shape[0] // 2)
 
 
 def _split(mask: np.ndarray, first: np.ndarray) -> list[np.ndarray] | None:
