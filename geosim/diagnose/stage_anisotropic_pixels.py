@@ -54,10 +54,17 @@ __all__ = ["pixel_anisotropic", "anisotropy_screen", "second_differences", "shap
            "Q_FACTORS", "MAX_EVALUATIONS"]
 
 #: held-out drop of the residual sum of squares the linear screen must show on each half
-#: before the blur is fitted, in units of that half's residual variance per pixel (set on
-#: the development half, round 42: see ``docs/diagnosis.md``)
+#: of each split before the blur is fitted, in units of that half's residual variance per
+#: pixel. Set on the development half (round 42; 307 scenes of the stage's domain, every
+#: one at Q ≥ 3.32, checkerboard split): of the 276 without an anisotropic blur (124
+#: controls, at most 2.8) the highest were c169 85 (moved objects at Q 4.46; −333 top /
+#: bottom) and c107 5.3; of the 31 with one, 14 reached 25 (c293 1250 … c1314 26), the
+#: noisy ones 26–38
 SCREEN_MIN_DCHI2 = 25.0
-#: held-out drop the fitted blur must bring on each half, in the same units
+#: held-out drop the fitted blur must bring on each checkerboard colour, in the same units
+#: (as :data:`~geosim.diagnose.stage_isotropic_pixels.ISO_PIXEL_MIN_DCHI2`). Development:
+#: c169's fit (had it passed the screen) 159; of the 14 blurs through the screen 10 reached
+#: it (c337 154 the lowest), c1266 80 and the three beside noise 34–35 did not
 ANISO_PIXEL_MIN_DCHI2 = 100.0
 
 
