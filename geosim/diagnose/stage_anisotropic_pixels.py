@@ -264,13 +264,9 @@ def pixel_anisotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     name = chosen_fit.name
     if not _claimable(name, chosen) or not no_worse_than_baseline(inp, ev)(chosen):
         return model
-    alternatives = []
-    for f in passing:
-        if f is not chosen_fit:
-            m, _ = f.best()
-            key = SHAPES[f.name].width_key
-            alternatives.append(Alternative(f.name, heldout_gain(halves, f.dchi2),
-                                            {key: float(m.blur[f.name][key])}))
+    alternatives = [Alternative(f.name, heldout_gain(halves, f.dchi2),
+                                {k: float(v) for k, v in f.best()[0].blur[f.name].items()})
+                    for f in passing if f is not chosen_fit]
     # the transfer's χ² at the chosen Q (for the ΔBIC reported; the claim rests on the
     # pixels); the width's uncertainty from the two halves' fits (the split-half spread)
     key = SHAPES[name].width_key
