@@ -194,8 +194,8 @@ def _q_scan(inp: Inputs, model: ForwardModel, halves: list[np.ndarray]) -> list[
 def shape_fit(inp: Inputs, model: ForwardModel, halves: list[np.ndarray], name: str,
               screen: Screen, base: list[list[float]]) -> ShapeFit:
     """``name`` (a key of :data:`SHAPES`) fitted on each half by Nelder–Mead on ln Q, its
-    width and its direction (started from the screen's second moment and direction, Q
-    lowered by the moment's isotropic half), and its held-out drop against the best of
+    width and its direction (started from the screen's second moment and direction and
+    from the Q of ``base`` best on that half), and its held-out drop against the best of
     ``base`` (Q alone, :func:`_q_scan`) chosen on the same half."""
     shape = SHAPES[name]
     lo, hi = shape.bounds_px
