@@ -1,0 +1,94 @@
+"""Probe (round 42): the lone-anisotropic pixel stage's screen and fits on development cases.
+
+For each case it runs the benchmark's diagnosis (``diagnose_independent.diagnose_case``) up
+to the first pass's ``engine.pixel_isotropic`` call, where the model the new stage
+(``geosim.diagnose.stage_anisotropic_pixels``) would see is complete, and stops there.
+Where that model holds no blur and no JPEG it records the screen's six held-out drops
+(checkerboard, left / right, top / bottom; ``anisotropy_screen``), its second moment and
+direction, and, where the weaker checkerboard drop reaches ``--fit-above``, both members'
+fits (``shape_fit``: held-out drops, parameters, Q, RSS over both colours). Nothing the
+diagnosis decides is changed. Round 42's numbers: ``docs/diagnosis.md``, round 42.
+
+Run: python benchmarks/probe_anisotropic_screen.py IDX[,IDX...] OUT.jsonl [--fit-above 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import diagnose_generator as gen  # noqa: E402
+import diagnose_independent as bench  # noqa: E402
+
+from geosim.diagnose import engine  # noqa: E402
+from geosim.diagnose import stage_anisotropic_pixels as an  # noqa: E402
+from geosim.diagnose.grey_render import grey_expected  # noqa: E402
+from geosim.diagnose.stage_resampling_coherent import (  # noqa: E402
+    checker_halves,
+    eval_halves,
+    top_bottom_halves,
+)
+
+
+class _Stop(Exception):
+    """Raised at the stage's place to end the diagnosis there."""
+
+
+def measure(inp: Any, model: Any, ev: Any, fit_above: float) -> dict[str, Any]:
+    """The screen (and, above ``fit_above``, the fits) on ``model`` as the stage sees it."""
+    out: dict[str, Any] = {"q_model": model.q, "blur": sorted(model.blur),
+                           "jpeg": model.compression is not None}
+    splits = [checker_halves(ev), eval_halves(ev), top_bottom_halves(ev)]
+    if model.blur or model.compression is not None or any(h is None for h in splits):
+        return out
+    rendered = grey_expected(inp, model)
+    screen = an.anisotropy_screen(inp.grey - rendered, rendered, splits)
+    out["screen"] = {"dchi2": screen.dchi2, "variance_px2": screen.variance_px2,
+                     "direction_deg": screen.direction_deg}
+    if min(screen.dchi2[:2]) >= fit_above:
+        t0 = time.time()
+        base = an._q_scan(inp, model, splits[0])
+        for name in an.SHAPES:
+            f = an.shape_fit(inp, model, splits[0], name, screen, base)
+            m, rss = f.best()
+            out[name] = {"dchi2": f.dchi2, "params": m.blur[name], "q": m.q, "rss": rss}
+        out["fit_seconds"] = time.time() - t0
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("indices")
+    ap.add_argument("out")
+    ap.add_argument("--fit-above", type=float, default=10.0)
+    args = ap.parse_args()
+    captured: dict[str, Any] = {}
+
+    def hook(inp, model, sel, setup, ev, candidates):
+        captured["result"] = measure(inp, model, ev, args.fit_above)
+        raise _Stop
+
+    engine.pixel_isotropic = hook
+    sources = gen.default_sources()
+    with open(args.out, "a") as f:
+        for i in (int(v) for v in args.indices.split(",")):
+            captured.clear()
+            t0 = time.time()
+            try:
+                bench.diagnose_case(gen.make_case(i, sources))
+            except _Stop:
+                pass
+            rec = {"i": i, "probe": captured.get("result", {}), "seconds": time.time() - t0}
+            f.write(json.dumps(rec) + "\n")
+            f.flush()
+            print(i, json.dumps(rec["probe"])[:200], flush=True)
+
+
+if __name__ == "__main__":
+    main()
