@@ -29,11 +29,6 @@ import diagnose_independent as bench  # noqa: E402
 from geosim.diagnose import engine  # noqa: E402
 from geosim.diagnose import stage_anisotropic_pixels as an  # noqa: E402
 from geosim.diagnose.grey_render import grey_expected  # noqa: E402
-from geosim.diagnose.stage_resampling_coherent import (  # noqa: E402
-    checker_halves,
-    eval_halves,
-    top_bottom_halves,
-)
 
 
 class _Stop(Exception):
@@ -44,8 +39,8 @@ def measure(inp: Any, model: Any, ev: Any, fit_above: float) -> dict[str, Any]:
     """The screen (and, above ``fit_above``, the fits) on ``model`` as the stage sees it."""
     out: dict[str, Any] = {"q_model": model.q, "blur": sorted(model.blur),
                            "jpeg": model.compression is not None}
-    splits = [checker_halves(ev), eval_halves(ev), top_bottom_halves(ev)]
-    if model.blur or model.compression is not None or any(h is None for h in splits):
+    splits = an.screen_splits(ev)
+    if model.blur or model.compression is not None or splits is None:
         return out
     rendered = grey_expected(inp, model)
     screen = an.anisotropy_screen(inp.grey - rendered, rendered, splits)

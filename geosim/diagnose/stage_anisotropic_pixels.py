@@ -43,6 +43,7 @@ from geosim.diagnose.stage_resampling_coherent import (
     append_pixel_step,
     checker_halves,
     eval_halves,
+    heldout_drop,
     heldout_gain,
     rss_on_halves,
     top_bottom_halves,
@@ -50,6 +51,7 @@ from geosim.diagnose.stage_resampling_coherent import (
 from geosim.diagnose.stage_withdraw import no_worse_than_baseline
 
 __all__ = ["pixel_anisotropic", "anisotropy_screen", "second_differences", "shape_fit",
+           "screen_splits",
            "Screen", "ShapeFit", "SHAPES", "SCREEN_MIN_DCHI2", "ANISO_PIXEL_MIN_DCHI2",
            "Q_FACTORS", "MAX_EVALUATIONS"]
 
@@ -209,8 +211,7 @@ def shape_fit(inp: Inputs, model: ForwardModel, halves: list[np.ndarray], name: 
                                    / shape.variance_per_width2), lo, hi))
     models, rss, dchi2 = [], [], []
     for k in (0, 1):
-        j = int(np.argmin([r[k] for r in base]))
-        b, q0 = base[j], Q_FACTORS[j] * model.q
+        q0 = Q_FACTORS[int(np.argmin([r[k] for r in base]))] * model.q
         x0 = np.array([np.log(q0), width0, screen.direction_deg])
         simplex = np.vstack([x0, x0 + np.diag([0.05, 0.25 * width0 + 0.1, 20.0])])
         res = minimize(lambda x, k=k: rss_on_halves(inp, [halves[k]], build(x))[0], x0,
@@ -218,11 +219,18 @@ def shape_fit(inp: Inputs, model: ForwardModel, halves: list[np.ndarray], name: 
                        options={"maxfev": MAX_EVALUATIONS, "initial_simplex": simplex})
         m = build(res.x)
         r = rss_on_halves(inp, halves, m)
-        o = 1 - k
         models.append(m)
         rss.append(r)
-        dchi2.append((b[o] - r[o]) / max(b[o] / int(halves[o].sum()), 1e-12))
+        # this half's fit scored on the other half against Q alone chosen on this one
+        dchi2.append(heldout_drop(halves, base, [r])[k])
     return ShapeFit(name=name, models=models, rss=rss, dchi2=dchi2)
+
+
+def screen_splits(ev: EvalContext) -> list[list[np.ndarray]] | None:
+    """The screen's three splits of the evaluation pixels (checkerboard first, whose
+    colours the fits also use; left / right; top / bottom); None when a half is empty."""
+    splits = [checker_halves(ev), eval_halves(ev), top_bottom_halves(ev)]
+    return None if any(h is None for h in splits) else splits  # type: ignore[return-value]
 
 
 def _claimable(name: str, m: ForwardModel) -> bool:
@@ -246,8 +254,8 @@ def pixel_anisotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     members = [n for n in SHAPES if n in candidates]
     if not members or model.blur or model.compression is not None:
         return model
-    splits = [checker_halves(ev), eval_halves(ev), top_bottom_halves(ev)]
-    if any(h is None for h in splits):
+    splits = screen_splits(ev)
+    if splits is None:
         return model
     halves = splits[0]
     rendered = grey_expected(inp, model)
