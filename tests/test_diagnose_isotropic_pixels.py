@@ -116,3 +116,46 @@ def test_alternative_members_pass_the_same_held_out_test():
     only_one = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
                              scanned=[claimed])
     assert iso.member_alternatives(only_one, "atmospheric_blur", members) == []
+
+
+LONE_DETECTOR = {"detector_integration": {"pitch_px": 1.4}}
+
+
+@pytest.mark.slow
+def test_lone_detector_at_high_q_found_in_the_pixels():
+    """No resampling, no noise, Q 3.5: a 1.4 px detector box (the generator's, on the
+    0.05 m grid) is found and named, its pitch near the truth, and the refined simulation
+    more than halves the baseline's spectral error (the generator's own measure)."""
+    claimed, se_base, se_ref, _ = _run(LONE_DETECTOR, q=3.5, seed=43, sat_px=128)
+    assert set(claimed) == {"detector_integration"}, list(claimed)
+    assert abs(claimed["detector_integration"]["params"]["pitch_px"] - 1.4) <= 0.3
+    assert se_ref <= 0.5 * se_base, (se_base, se_ref)
+
+
+@pytest.mark.slow
+def test_without_the_pixel_test_the_lone_detector_goes_into_q(monkeypatch):
+    """The same scene with the stage switched off: the transfer alone claims nothing (so
+    the test above is this stage's)."""
+    monkeypatch.setattr(iso, "ISO_PIXEL_MIN_DCHI2", np.inf)
+    claimed, _, _, _ = _run(LONE_DETECTOR, q=3.5, seed=43, sat_px=128)
+    assert not claimed, list(claimed)
+
+
+@pytest.mark.parametrize("truth, lone", [
+    (LONE_DETECTOR, True),
+    ({"off_nadir_anisotropy": {"sigma_px": 0.6, "azimuth_deg": 40.0}}, False),
+    ({"motion_smear": {"length_px": 2.0, "direction_deg": 110.0}}, False)])
+def test_lone_test_defers_to_an_anisotropic_trace(truth, lone):
+    """Against the paper's model at the true Q (no blur), the residual of a lone detector
+    opens the lone isotropic test; the generator's off-nadir elongation and motion smear
+    leave an anisotropic trace, and the test is left to the anisotropic stage."""
+    from geosim.diagnose.context import EvalContext
+    from geosim.diagnose.model import ForwardModel
+    from tests.generator_cases import no_registration, scene_inputs
+
+    inp, real = scene_inputs(truth, q=3.5, seed=43, sat_px=96)
+    model = ForwardModel(q=3.5, blur={}, registration=no_registration())
+    ev = EvalContext(mask=np.ones(real.shape[-2:], bool), origins=[], block_px=32,
+                     real_grey=inp.grey, noise_seed=0)
+    assert iso._lone_domain(inp, model, ev) is lone
+    assert not iso._lone_domain(inp, model.without(blur=truth), ev)   # a blur held: no

@@ -1,4 +1,5 @@
-"""An isotropic blur beside a resampling, by its trace in the pixels (:func:`pixel_isotropic`).
+"""An isotropic blur beside a resampling or alone, by its trace in the pixels
+(:func:`pixel_isotropic`).
 
 Where a resampling is claimed, its aliasing fills the band above the native Nyquist with
 power the transfer fit reads as incoherence, and an isotropic roll-off (a detector box, an
@@ -23,6 +24,14 @@ passes the same test. The model with it must fit no worse than the baseline (as
 the claim is decided, the resampling's pitch, Q and native phase are refined again on the
 power spectrum with the chosen blur held (:data:`REFINE_ON_SPECTRUM`: the pixels chose Q
 on a coarse scan and the phase on a grid).
+
+Alone (round 43), with no blur in the model and no JPEG, a detector box or an atmosphere
+at high Q differs from a wider optical PSF by little the transfer can weigh (development,
+round 42's rows: 29 lone detectors and 11 lone atmospheres missed in this domain, ideal
+observer Δχ² up to 1e4), while in the pixels the same scan separates it from Q alone. The
+same test and threshold apply, and the scene must show no anisotropic trace: a smear's or
+an elongation's misfit is partly taken up by a roll-off, and the anisotropic stage that
+follows tests those (:func:`_lone_domain`).
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ import numpy as np
 
 from geosim.diagnose.context import EvalContext
 from geosim.diagnose.fit import fit_transfer
+from geosim.diagnose.grey_render import grey_expected
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.select import (
     BLUR_FAMILY,
@@ -41,6 +51,11 @@ from geosim.diagnose.select import (
     clearly_present,
 )
 from geosim.diagnose.stage_aliasing import refined_from
+from geosim.diagnose.stage_anisotropic_pixels import (
+    SCREEN_MIN_DCHI2,
+    anisotropy_screen,
+    screen_splits,
+)
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs
 from geosim.diagnose.stage_noise import realisations
@@ -149,12 +164,13 @@ def isotropic_scan(inp: Inputs, model: ForwardModel, setup: SpectralSetup, ev: E
     # Offsets from the model's phase (refined on the power spectrum), which stays a
     # candidate: a coarse grid alone had replaced it at Q 1.0, and the aliases left by the
     # wrong phase read as a detector box
-    pitch = float(model.blur["resampling"]["native_pitch_px"])
-    steps = np.arange(PHASE_STEPS) * pitch / PHASE_STEPS
-    r0, c0 = model.native_phase_px
-    phases = [(float(r0 + a), float(c0 + b)) for a in steps for b in steps]
-    model = model.without(native_phase_px=min(
-        phases, key=lambda p: sum(rss(model.without(native_phase_px=p)))))
+    if "resampling" in model.blur:
+        pitch = float(model.blur["resampling"]["native_pitch_px"])
+        steps = np.arange(PHASE_STEPS) * pitch / PHASE_STEPS
+        r0, c0 = model.native_phase_px
+        phases = [(float(r0 + a), float(c0 + b)) for a in steps for b in steps]
+        model = model.without(native_phase_px=min(
+            phases, key=lambda p: sum(rss(model.without(native_phase_px=p)))))
     base = []
     for f in BASE_Q_FACTORS:
         m = model.without(q=model.q * f)
@@ -214,19 +230,42 @@ def _on_spectrum_held(inp: Inputs, setup: SpectralSetup, ev: EvalContext,
     return refined_from(setup, [model], se_of)[0]
 
 
+def _lone_domain(inp: Inputs, model: ForwardModel, ev: EvalContext) -> bool:
+    """Whether a lone isotropic blur is tested: the model holds no blur at all, and the
+    residual shows no anisotropic trace (the checkerboard colours of
+    :func:`~geosim.diagnose.stage_anisotropic_pixels.anisotropy_screen` both below
+    :data:`~geosim.diagnose.stage_anisotropic_pixels.SCREEN_MIN_DCHI2`): there a
+    roll-off would take up part of a smear's or an elongation's misfit, and the
+    anisotropic stage that follows tests it (development c293, an off-nadir elongation
+    at Q 4.47: a 1.6 px detector gained 122 and 296 on the halves, the screen 1250)."""
+    if model.blur:
+        return False
+    splits = screen_splits(ev)
+    if splits is None:
+        return False
+    rendered = grey_expected(inp, model)
+    screen = anisotropy_screen(inp.grey - rendered, rendered, splits[:1])
+    return min(screen.dchi2) < SCREEN_MIN_DCHI2
+
+
 def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
                     setup: SpectralSetup, ev: EvalContext,
                     candidates: tuple[str, ...]) -> ForwardModel:
-    """An isotropic blur claimed beside a resampling by its trace in the pixels.
+    """An isotropic blur claimed beside a resampling, or alone, by its trace in the pixels.
 
-    Tested only where the model holds a resampling, no member of the isotropic family
-    and no JPEG (whose quantisation is not independent of the image). The claim's step
+    Tested where the model holds no member of the isotropic family and no JPEG (whose
+    quantisation is not independent of the image), and either a resampling or no blur at
+    all with no anisotropic trace (:func:`_lone_domain`). A lone blur is claimed from the
+    scan's pixels as they chose it (no resampling to refine on the spectrum). The claim's step
     records ``heldout_gain`` as the weaker half's held-out drop of the residual sum of
     squares (fraction); its fit is the transfer fit with the chosen blur held (Q refitted),
     its uncertainty the scan's step."""
     members = [n for n in MEMBER_SCAN if n in candidates]
-    if (not members or "resampling" not in model.blur or model.compression is not None
+    if (not members or model.compression is not None
             or any(BLUR_FAMILY.get(n) == "isotropic" for n in model.blur)):
+        return model
+    lone = "resampling" not in model.blur
+    if lone and not _lone_domain(inp, model, ev):
         return model
     scan = isotropic_scan(inp, model, setup, ev, members)
     if scan is None:
@@ -242,7 +281,7 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         # Q on the transfer, losing the Q the resampling's spectrum had put right
         # (development c196: spectral error 0.027 → 0.103)
         return model
-    if REFINE_ON_SPECTRUM:
+    if REFINE_ON_SPECTRUM and not lone:
         # after the claim is decided: refined before it, development c692's false 1.0 px
         # detector (beside a resampling alone at Q 1.00, refined to Q 0.74) passed it
         chosen = _on_spectrum_held(inp, setup, ev, chosen)
