@@ -15,7 +15,6 @@ Run: python benchmarks/probe_anisotropic_screen.py IDX[,IDX...] OUT.jsonl [--fit
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -23,16 +22,10 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import diagnose_generator as gen  # noqa: E402
-import diagnose_independent as bench  # noqa: E402
+from probe_at_stage import probe_cases  # noqa: E402
 
-from geosim.diagnose import engine  # noqa: E402
 from geosim.diagnose import stage_anisotropic_pixels as an  # noqa: E402
 from geosim.diagnose.grey_render import grey_expected  # noqa: E402
-
-
-class _Stop(Exception):
-    """Raised at the stage's place to end the diagnosis there."""
 
 
 def measure(inp: Any, model: Any, ev: Any, fit_above: float) -> dict[str, Any]:
@@ -63,26 +56,8 @@ def main() -> None:
     ap.add_argument("out")
     ap.add_argument("--fit-above", type=float, default=10.0)
     args = ap.parse_args()
-    captured: dict[str, Any] = {}
-
-    def hook(inp, model, sel, setup, ev, candidates):
-        captured["result"] = measure(inp, model, ev, args.fit_above)
-        raise _Stop
-
-    engine.pixel_isotropic = hook
-    sources = gen.default_sources()
-    with open(args.out, "a") as f:
-        for i in (int(v) for v in args.indices.split(",")):
-            captured.clear()
-            t0 = time.time()
-            try:
-                bench.diagnose_case(gen.make_case(i, sources))
-            except _Stop:
-                pass
-            rec = {"i": i, "probe": captured.get("result", {}), "seconds": time.time() - t0}
-            f.write(json.dumps(rec) + "\n")
-            f.flush()
-            print(i, json.dumps(rec["probe"])[:200], flush=True)
+    probe_cases(args.indices, args.out,
+                lambda inp, model, sel, setup, ev, cands: measure(inp, model, ev, args.fit_above))
 
 
 if __name__ == "__main__":
