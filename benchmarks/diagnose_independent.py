@@ -51,6 +51,7 @@ Writes benchmarks/results/diagnose_independent.json and prints markdown tables.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 import time
@@ -61,7 +62,11 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+# this checkout's geosim only where none is importable: PYTHONPATH=<another checkout> then
+# runs that checkout's code with this benchmark (before round 43 this checkout was put
+# first, so such runs silently used its own code)
+if importlib.util.find_spec("geosim") is None:
+    sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import diagnose_generator as gen  # noqa: E402
@@ -282,6 +287,7 @@ def main() -> None:
             sys.exit(f"--indices: development cases only (0-{DEVELOPMENT[-1]})")
         idx = args.indices
     t0 = time.time()
+    print(f"geosim from {geosim_location()}", flush=True)
     kw: dict[str, Any] = {}
     if args.sat_px != SAT_PX:
         kw["sat_px"] = args.sat_px
@@ -291,6 +297,13 @@ def main() -> None:
         kw["flight"] = True
     _write(args.out, run(idx, sources, (lambda k: kw) if kw else None), sources, t0,
            SEEDS_NOTE, sat_px=args.sat_px, variants=args.variants, flight=args.flight)
+
+
+def geosim_location() -> str:
+    """The folder of the geosim package this run imports (which checkout's code ran)."""
+    import geosim
+
+    return str(Path(geosim.__file__).resolve().parent)
 
 
 def merge(files: list[Path], out: str) -> None:
@@ -339,7 +352,8 @@ def _write(path: str, rows: list[dict[str, Any]], sources: list[gen.Source], t0:
               for h in ("development", "validation", "extension")
               if any(r["split"] == h for r in rows)}
     out = {"halves": halves, "cases": rows, "seconds_total": time.time() - t0,
-           "setup": {"phi": gen.PHI, "q_range": gen.Q_RANGE, "ranges": gen.RANGES,
+           "setup": {"geosim": geosim_location(), "phi": gen.PHI, "q_range": gen.Q_RANGE,
+                     "ranges": gen.RANGES,
                      "sources": [{"name": s.name, "gsd_m": s.gsd_m, "note": s.note}
                                  for s in sources],
                      "n_cases": len(rows), "sat_px": sat_px, "seeds": seeds,
