@@ -169,6 +169,13 @@ def test_blur_beside_moved_objects_found_on_the_painted_ground(realdata, samples
                                    rng=np.random.default_rng(0), q_lo=0.7)
         return d.summary, d.refined
 
+    # since round 43 the first pass's pixel test for a lone isotropic blur finds the
+    # atmosphere already; the second pass is what is tested here, so that test is off below
+    s0, _ = run()
+    assert {e["name"] for e in s0["effects"]} == {"atmospheric_blur", "scene_change"}
+    from geosim.diagnose import stage_isotropic_pixels as iso
+
+    monkeypatch.setattr(iso, "_lone_domain", lambda inp, model, ev: False)
     s, refined = run()
     names = {e["name"] for e in s["effects"]}
     assert names == {"atmospheric_blur", "scene_change"}
