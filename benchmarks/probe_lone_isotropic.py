@@ -48,7 +48,8 @@ def measure(inp: Any, model: Any, setup: Any, ev: Any) -> dict[str, Any]:
         out["lr"] = scan.heldout_dchi2()
         out["lr_member"] = {n: scan.heldout_dchi2(n) for n in present}
         out["best"] = [name, value, best.q]
-        out["best_member"] = {n: [scan.best(n)[1], scan.best(n)[2].q] for n in present}
+        best_of = {n: scan.best(n) for n in present}
+        out["best_member"] = {n: [v, m.q] for n, (_, v, m) in best_of.items()}
     out["scan_seconds"] = time.time() - t0
     return out
 
