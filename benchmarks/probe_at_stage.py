@@ -30,7 +30,7 @@ def probe_cases(indices: str, out: str, measure: Callable[..., dict[str, Any]]) 
     stage would see."""
     captured: dict[str, Any] = {}
 
-    def hook(*args: Any) -> None:
+    def hook(*args: Any, **kwargs: Any) -> None:
         captured["result"] = measure(*args)
         raise _Stop
 

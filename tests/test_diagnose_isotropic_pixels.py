@@ -159,3 +159,22 @@ def test_lone_test_defers_to_an_anisotropic_trace(truth, lone):
                      real_grey=inp.grey, noise_seed=0)
     assert iso._lone_domain(inp, model, ev) is lone
     assert not iso._lone_domain(inp, model.without(blur=truth), ev)   # a blur held: no
+
+
+def test_lone_test_left_out_where_the_engine_says_so(monkeypatch):
+    """``lone=False`` (a first pass that located moved objects, whose second pass on the
+    painted ground tests it): the lone detector's scan is not run; with ``lone=True`` it is."""
+    from geosim.diagnose.context import EvalContext
+    from geosim.diagnose.model import ForwardModel
+    from tests.generator_cases import no_registration, scene_inputs
+
+    inp, real = scene_inputs(LONE_DETECTOR, q=3.5, seed=43, sat_px=96)
+    model = ForwardModel(q=3.5, blur={}, registration=no_registration())
+    ev = EvalContext(mask=np.ones(real.shape[-2:], bool), origins=[], block_px=32,
+                     real_grey=inp.grey, noise_seed=0)
+    scanned = []
+    monkeypatch.setattr(iso, "isotropic_scan", lambda *a: scanned.append(a) and None)
+    members = ("detector_integration", "atmospheric_blur")
+    args = (inp, model, None, None, ev, members)
+    assert iso.pixel_isotropic(*args, lone=False) is model and not scanned
+    assert iso.pixel_isotropic(*args, lone=True) is model and len(scanned) == 1

@@ -85,8 +85,11 @@ def diagnosis_markdown(s: dict[str, Any]) -> str:
 
 def _refit_markdown(refit: dict[str, Any]) -> list[str]:
     """The second pass with the moved objects painted into the UAV ground, in words."""
+    again = (["\nThe pixel test for a lone isotropic blur, left to a second pass on the "
+              "painted ground, ran on the first pass again: no second pass was kept."]
+             if refit.get("lone_isotropic_retested") else [])
     if not refit.get("ran"):
-        return []
+        return again
     pairs = refit.get("spectral_error_whole") or []
     errs = ", ".join(f"{a:.3f} → {b:.3f} on {px} px blocks"
                      for (a, b), px in zip(pairs, refit.get("block_px", []), strict=True))
@@ -98,7 +101,7 @@ def _refit_markdown(refit: dict[str, Any]) -> list[str]:
                 f"its claims stand (the first pass claimed {first})."]
     why = f"it fit no better ({errs})" if errs else "too few whole blocks to judge it"
     return [f"\nA second pass with the {refit['n_objects_painted']} moved objects painted "
-            f"into the UAV ground was not kept: {why}."]
+            f"into the UAV ground was not kept: {why}."] + again
 
 
 def fmt(v: Any) -> str:

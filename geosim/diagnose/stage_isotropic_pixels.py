@@ -69,8 +69,8 @@ from geosim.diagnose.stage_resampling_coherent import (
 )
 from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, no_worse_than_baseline
 
-__all__ = ["pixel_isotropic", "IsotropicScan", "isotropic_scan", "member_alternatives",
-           "ISO_PIXEL_MIN_DCHI2", "REFINE_ON_SPECTRUM",
+__all__ = ["pixel_isotropic", "lone_possible", "IsotropicScan", "isotropic_scan",
+           "member_alternatives", "ISO_PIXEL_MIN_DCHI2", "REFINE_ON_SPECTRUM",
            "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS", "MIN_Q"]
 
 #: held-out drop of the residual sum of squares the isotropic blur must bring, in units of
@@ -248,14 +248,22 @@ def _lone_domain(inp: Inputs, model: ForwardModel, ev: EvalContext) -> bool:
     return min(screen.dchi2) < SCREEN_MIN_DCHI2
 
 
+def lone_possible(model: ForwardModel, candidates: tuple[str, ...]) -> bool:
+    """Whether :func:`pixel_isotropic` would consider a lone blur on ``model`` (before
+    its residual is screened): a member among ``candidates``, no blur and no JPEG."""
+    return (any(n in candidates for n in MEMBER_SCAN) and not model.blur
+            and model.compression is None)
+
+
 def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
                     setup: SpectralSetup, ev: EvalContext,
-                    candidates: tuple[str, ...]) -> ForwardModel:
+                    candidates: tuple[str, ...], lone: bool = True) -> ForwardModel:
     """An isotropic blur claimed beside a resampling, or alone, by its trace in the pixels.
 
     Tested where the model holds no member of the isotropic family and no JPEG (whose
     quantisation is not independent of the image), and either a resampling or no blur at
-    all with no anisotropic trace (:func:`_lone_domain`). A lone blur is claimed from the
+    all with no anisotropic trace (:func:`_lone_domain`) where ``lone`` allows it. A lone
+    blur is claimed from the
     scan's pixels as they chose it (no resampling to refine on the spectrum). The claim's step
     records ``heldout_gain`` as the weaker half's held-out drop of the residual sum of
     squares (fraction); its fit is the transfer fit with the chosen blur held (Q refitted),
@@ -264,8 +272,9 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     if (not members or model.compression is not None
             or any(BLUR_FAMILY.get(n) == "isotropic" for n in model.blur)):
         return model
-    lone = "resampling" not in model.blur
-    if lone and not _lone_domain(inp, model, ev):
+    alone = "resampling" not in model.blur
+    if alone and not (lone and lone_possible(model, candidates)
+                      and _lone_domain(inp, model, ev)):
         return model
     scan = isotropic_scan(inp, model, setup, ev, members)
     if scan is None:
@@ -281,7 +290,7 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         # Q on the transfer, losing the Q the resampling's spectrum had put right
         # (development c196: spectral error 0.027 → 0.103)
         return model
-    if REFINE_ON_SPECTRUM and not lone:
+    if REFINE_ON_SPECTRUM and not alone:
         # after the claim is decided: refined before it, development c692's false 1.0 px
         # detector (beside a resampling alone at Q 1.00, refined to Q 0.74) passed it
         chosen = _on_spectrum_held(inp, setup, ev, chosen)
