@@ -262,12 +262,12 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
 
     Tested where the model holds no member of the isotropic family and no JPEG (whose
     quantisation is not independent of the image), and either a resampling or no blur at
-    all with no anisotropic trace (:func:`_lone_domain`) where ``lone`` allows it. A lone
-    blur is claimed from the
-    scan's pixels as they chose it (no resampling to refine on the spectrum). The claim's step
-    records ``heldout_gain`` as the weaker half's held-out drop of the residual sum of
-    squares (fraction); its fit is the transfer fit with the chosen blur held (Q refitted),
-    its uncertainty the scan's step."""
+    all with no anisotropic trace (:func:`_lone_domain`) where ``lone`` allows it (the
+    engine leaves it to the painted second pass where moved objects are located). A lone
+    blur is claimed from the scan's pixels as they chose it (no resampling to refine on
+    the spectrum). The claim's step records ``heldout_gain`` as the weaker half's held-out
+    drop of the residual sum of squares (fraction); its fit is the transfer fit with the
+    chosen blur held (Q refitted), its uncertainty the scan's step."""
     members = [n for n in MEMBER_SCAN if n in candidates]
     if (not members or model.compression is not None
             or any(BLUR_FAMILY.get(n) == "isotropic" for n in model.blur)):
