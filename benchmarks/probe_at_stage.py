@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -48,3 +49,12 @@ def probe_cases(indices: str, out: str, measure: Callable[..., dict[str, Any]]) 
             f.write(json.dumps(rec) + "\n")
             f.flush()
             print(i, json.dumps(rec["probe"])[:200], flush=True)
+
+
+def probe_main(description: str, measure: Callable[..., dict[str, Any]]) -> None:
+    """The command line of a probe: ``IDX[,IDX...] OUT.jsonl``, then :func:`probe_cases`."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("indices")
+    ap.add_argument("out")
+    args = ap.parse_args()
+    probe_cases(args.indices, args.out, measure)

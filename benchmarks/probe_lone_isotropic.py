@@ -14,7 +14,6 @@ Run: python benchmarks/probe_lone_isotropic.py IDX[,IDX...] OUT.jsonl
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -22,7 +21,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from probe_at_stage import probe_cases  # noqa: E402
+from probe_at_stage import probe_main  # noqa: E402
 
 from geosim.diagnose import stage_anisotropic_pixels as an  # noqa: E402
 from geosim.diagnose import stage_isotropic_pixels as iso  # noqa: E402
@@ -55,12 +54,8 @@ def measure(inp: Any, model: Any, setup: Any, ev: Any) -> dict[str, Any]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("indices")
-    ap.add_argument("out")
-    args = ap.parse_args()
-    probe_cases(args.indices, args.out,
-                lambda inp, model, sel, setup, ev, candidates: measure(inp, model, setup, ev))
+    probe_main(__doc__.splitlines()[0],
+               lambda inp, model, sel, setup, ev, candidates: measure(inp, model, setup, ev))
 
 
 if __name__ == "__main__":

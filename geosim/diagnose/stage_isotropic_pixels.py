@@ -273,8 +273,7 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
             or any(BLUR_FAMILY.get(n) == "isotropic" for n in model.blur)):
         return model
     alone = "resampling" not in model.blur
-    if alone and not (lone and lone_possible(model, candidates)
-                      and _lone_domain(inp, model, ev)):
+    if alone and not (lone and _lone_domain(inp, model, ev)):
         return model
     scan = isotropic_scan(inp, model, setup, ev, members)
     if scan is None:
