@@ -18,6 +18,8 @@ cross-validation folds, forward blur selection) →
 :func:`~geosim.diagnose.stage_register.confirm_shift` (the shift against the refined model) →
 :mod:`~geosim.diagnose.stage_aliasing`, :mod:`~geosim.diagnose.stage_resampling_coherent`
 (under noise, a resampling by its aliasing in the pixels),
+:mod:`~geosim.diagnose.stage_anisotropic_member` (the anisotropic member the transfer
+named, checked against the other in the pixels),
 :mod:`~geosim.diagnose.stage_isotropic_pixels` (beside a resampling, an isotropic blur by
 its trace in the pixels), :mod:`~geosim.diagnose.stage_jpeg_blur` (under JPEG, a
 resampling at high Q checked on the scene's quantisation intervals, then a blur by them) and
@@ -52,6 +54,7 @@ from geosim.diagnose.model import Claim, ForwardModel
 from geosim.diagnose.select import BlurSelection
 from geosim.diagnose.spectra import block_origins
 from geosim.diagnose.stage_aliasing import aliasing_test
+from geosim.diagnose.stage_anisotropic_member import pixel_member
 from geosim.diagnose.stage_anisotropic_pixels import pixel_anisotropic
 from geosim.diagnose.stage_blur import SpectralSetup, adopt, select_with_q_room
 from geosim.diagnose.stage_change import (
@@ -307,6 +310,8 @@ def _one_pass(inp: Inputs, rng: np.random.Generator, q_lo: float, q_hi: float,
     # where moved objects are located unless told (the second pass, on the ground with
     # them painted in, tests it; in the first it had preempted that pass: development
     # c304's atmosphere lost, c319's named a detector, c1104's fit no longer halved)
+    # an anisotropic member named by the transfer, checked against the other in the pixels
+    model = pixel_member(inp, model, sel, setup, ev, window.candidates)
     deferred = (defer_lone and any(r.kind == "scene_change" for r in regions)
                 and lone_possible(model, window.candidates))
     model = pixel_isotropic(inp, model, sel, setup, ev, window.candidates, lone=not deferred)

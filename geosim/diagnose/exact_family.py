@@ -26,7 +26,6 @@ model's.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 
@@ -44,6 +43,7 @@ from geosim.diagnose.select import (
     clearly_present,
     delta_bic,
     plausible,
+    replace_step,
 )
 
 __all__ = ["exact_duel", "EXACT_FAMILIES"]
@@ -138,12 +138,6 @@ def exact_duel(grey: np.ndarray, sims_grey: Sequence[np.ndarray], q_grid: np.nda
             if m != best and res.gains[m] >= MIN_CV_GAIN
             and gb - res.gains[m] <= AMBIGUITY_CV * gb]
     dbic = delta_bic(exact_fit(sims, blocks, without), fit, n_values)
-    sel.steps[k] = AcceptedEffect(best, dbic, float(gb), alts, fit)
-    for j in range(k + 1, len(sel.steps)):
-        st = sel.steps[j]
-        eff = {(best if n == old else n): (dict(fit.effects[best]) if n == old else p)
-               for n, p in st.fit.effects.items()}
-        sel.steps[j] = replace(st, fit=replace(st.fit, effects=eff))
+    replace_step(sel, k, AcceptedEffect(best, dbic, float(gb), alts, fit), final=fit)
     sel.cv_gain.update({m: float(v) for m, v in res.gains.items()})
-    sel.final = fit
     return sel

@@ -344,7 +344,8 @@ class Claim:
     spectral_error_after: float = float("nan")
     #: the statistics of a claim found by a test rather than a fit (compression: the
     #: quantisation lattice's log-likelihood gain and the quality's margin, and the
-    #: block-edge steps' ratios, z-scores and phases per direction)
+    #: block-edge steps' ratios, z-scores and phases per direction; an anisotropic blur
+    #: renamed in the pixels: the member the transfer named and the pixels' evidence)
     test: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:

@@ -25,18 +25,7 @@ def diagnosis_markdown(s: dict[str, Any]) -> str:
         lines.append("## Physics the model left out (in the order they were added)")
         lines.append("")
         for e in s["effects"]:
-            params = ", ".join(f"{k} = {fmt(v)}" for k, v in e["params"].items())
-            lines.append(f"- **{e['name']}** ({params}). {e['explanation'].split(' Fitted:')[0]} "
-                         + ("Evidence: quantisation lattice, 2 Δ log-likelihood = " if "test" in e
-                            else "Evidence: ΔBIC = ") + fmt(e["delta_bic"])
-                         + (f", held-out χ² {100 * e['heldout_gain']:.0f} % lower"
-                            if e.get("heldout_gain") is not None else "")
-                         + "; after adding it the RMSE is "
-                         f"{e['rmse_after']:.2f} DN and the spectral error "
-                         f"{e['spectral_error_after']:.3f}.")
-            if e.get("indistinguishable_from"):
-                lines.append(f"  - Caution: on these data it cannot be told apart from "
-                             f"{', '.join(e['indistinguishable_from'])}.")
+            lines.extend(_effect_lines(e))
     lines.append("")
     lines.append(f"## Refit\n\nWith these effects the refitted Q is {rf['q']:.2f} "
                  f"(± {rf['q_sigma']:.2f}); it is "
@@ -81,6 +70,33 @@ def diagnosis_markdown(s: dict[str, Any]) -> str:
     lines += [f"![{name}]({name}.png)\n" for name in
               ("mismatch_maps", "transfer_function", "noise_vs_brightness")]
     return "\n".join(lines) + "\n"
+
+
+def _effect_lines(e: dict[str, Any]) -> list[str]:
+    """The report's lines for one claimed effect (an entry of ``effects``)."""
+    lines = []
+    params = ", ".join(f"{k} = {fmt(v)}" for k, v in e["params"].items())
+    lines.append(f"- **{e['name']}** ({params}). {e['explanation'].split(' Fitted:')[0]} "
+                 + ("Evidence: quantisation lattice, 2 Δ log-likelihood = "
+                    if e["name"] == "compression" else "Evidence: ΔBIC = ")
+                 + fmt(e["delta_bic"])
+                 + (f", held-out χ² {100 * e['heldout_gain']:.0f} % lower"
+                    if e.get("heldout_gain") is not None else "")
+                 + "; after adding it the RMSE is "
+                 f"{e['rmse_after']:.2f} DN and the spectral error "
+                 f"{e['spectral_error_after']:.3f}.")
+    if e.get("indistinguishable_from"):
+        lines.append(f"  - Caution: on these data it cannot be told apart from "
+                     f"{', '.join(e['indistinguishable_from'])}.")
+    if e["name"] != "compression" and (e.get("test") or {}).get("transfer_named"):
+        t = e["test"]
+        lines.append(f"  - Named in the pixels: the transfer named "
+                     f"{t['transfer_named']}; fitted in its place on each half of a "
+                     f"checkerboard, this one lowered the other half's residual by "
+                     + " and ".join(f"{v:.0f}" for v in t["naming_dchi2"])
+                     + f" (residual variances per pixel; at least {fmt(t['min_dchi2'])} "
+                     "needed on both).")
+    return lines
 
 
 def _refit_markdown(refit: dict[str, Any]) -> list[str]:

@@ -23,7 +23,7 @@ blocks within ``AMBIGUITY_CV`` of it are listed as alternatives with their score
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -39,6 +39,7 @@ from geosim.diagnose.fit import (
 from geosim.diagnose.model import RadiometryChoice
 
 __all__ = ["BlurSelection", "Alternative", "AcceptedEffect", "select_blur", "delta_bic",
+           "replace_step",
            "bic_evidence",
            "select_radiometry", "cv_chi2", "at_bound", "clearly_present", "plausible",
            "MIN_DELTA_BIC", "MIN_CV_GAIN", "AMBIGUITY_CV", "EFFECT_SIZE", "EFFECT_MAX",
@@ -133,6 +134,9 @@ class AcceptedEffect:
     heldout_gain: float
     alternatives: list[Alternative]
     fit: TransferFit
+    #: statistics of a test that renamed the effect after the selection (the claim's
+    #: ``test`` in diagnosis.json); None: named by the selection
+    test: dict[str, Any] | None = None
 
 
 @dataclass
@@ -147,6 +151,28 @@ class BlurSelection:
     at_bound: set[str] = field(default_factory=set)          # fits pinned at a bound
     too_small: set[str] = field(default_factory=set)         # fits too close to the null
     implausible: set[str] = field(default_factory=set)       # fits beyond EFFECT_MAX
+
+
+def replace_step(sel: BlurSelection, k: int, step: AcceptedEffect,
+                 final: TransferFit | None = None) -> None:
+    """Put ``step`` in place of step ``k`` of ``sel`` (a member of the same family named
+    instead): later steps' fits hold it under its name and with its parameters in place of
+    the replaced one's; ``final``: the selection's final fit (None: the replaced member
+    renamed in the current one, or ``step.fit`` where step ``k`` is the last)."""
+    old = sel.steps[k].name
+    new = dict(step.fit.effects[step.name])
+
+    def renamed(fit: TransferFit) -> TransferFit:
+        return replace(fit, effects={(step.name if n == old else n): (new if n == old else p)
+                                     for n, p in fit.effects.items()})
+
+    sel.steps[k] = step
+    for j in range(k + 1, len(sel.steps)):
+        sel.steps[j] = replace(sel.steps[j], fit=renamed(sel.steps[j].fit))
+    if final is not None:
+        sel.final = final
+    else:
+        sel.final = step.fit if k == len(sel.steps) - 1 else renamed(sel.final)
 
 
 def at_bound(name: str, params: dict[str, float], rel: float = 0.01) -> bool:

@@ -51,7 +51,7 @@ from geosim.diagnose.stage_resampling_coherent import (
 from geosim.diagnose.stage_withdraw import no_worse_than_baseline
 
 __all__ = ["pixel_anisotropic", "anisotropy_screen", "second_differences", "shape_fit",
-           "screen_splits",
+           "fit_on_half", "claimable", "screen_splits",
            "Screen", "ShapeFit", "SHAPES", "SCREEN_MIN_DCHI2", "ANISO_PIXEL_MIN_DCHI2",
            "Q_FACTORS", "MAX_EVALUATIONS"]
 
@@ -193,31 +193,43 @@ def _q_scan(inp: Inputs, model: ForwardModel, halves: list[np.ndarray]) -> list[
     return [rss_on_halves(inp, halves, model.without(q=model.q * f)) for f in Q_FACTORS]
 
 
-def shape_fit(inp: Inputs, model: ForwardModel, halves: list[np.ndarray], name: str,
-              screen: Screen, base: list[list[float]]) -> ShapeFit:
-    """``name`` (a key of :data:`SHAPES`) fitted on each half by Nelder–Mead on ln Q, its
-    width and its direction (started from the screen's second moment and direction and
-    from the Q of ``base`` best on that half), and its held-out drop against the best of
-    ``base`` (Q alone, :func:`_q_scan`) chosen on the same half."""
+def fit_on_half(inp: Inputs, model: ForwardModel, half: np.ndarray, name: str,
+                variance_px2: float, direction_deg: float, q0: float,
+                held: dict[str, dict[str, float]] | None = None) -> ForwardModel:
+    """``name`` (a key of :data:`SHAPES`) fitted on the pixels ``half`` by Nelder–Mead on
+    ln Q, its width (px) and its direction (degrees), started from Q ``q0``, the second
+    moment ``variance_px2`` (px²) along ``direction_deg``; ``held``: the other blurs of the
+    fitted model, held as they are (None: none). At most :data:`MAX_EVALUATIONS` renders."""
     shape = SHAPES[name]
     lo, hi = shape.bounds_px
+    others = dict(held or {})
 
     def build(x: np.ndarray) -> ForwardModel:
-        return model.without(q=float(np.exp(x[0])), blur={name: {
+        return model.without(q=float(np.exp(x[0])), blur={**others, name: {
             shape.width_key: float(np.clip(x[1], lo, hi)),
             shape.direction_key: float(x[2]) % 180.0}})
 
-    width0 = float(np.clip(np.sqrt(max(screen.variance_px2, 0.0)
-                                   / shape.variance_per_width2), lo, hi))
+    width0 = float(np.clip(np.sqrt(max(variance_px2, 0.0) / shape.variance_per_width2),
+                           lo, hi))
+    x0 = np.array([np.log(q0), width0, direction_deg])
+    simplex = np.vstack([x0, x0 + np.diag([0.05, 0.25 * width0 + 0.1, 20.0])])
+    res = minimize(lambda x: rss_on_halves(inp, [half], build(x))[0], x0,
+                   method="Nelder-Mead",
+                   options={"maxfev": MAX_EVALUATIONS, "initial_simplex": simplex})
+    return build(res.x)
+
+
+def shape_fit(inp: Inputs, model: ForwardModel, halves: list[np.ndarray], name: str,
+              screen: Screen, base: list[list[float]]) -> ShapeFit:
+    """``name`` (a key of :data:`SHAPES`) fitted alone on each half (:func:`fit_on_half`,
+    started from the screen's second moment and direction and from the Q of ``base`` best
+    on that half), and its held-out drop against the best of ``base`` (Q alone,
+    :func:`_q_scan`) chosen on the same half."""
     models, rss, dchi2 = [], [], []
     for k in (0, 1):
         q0 = Q_FACTORS[int(np.argmin([r[k] for r in base]))] * model.q
-        x0 = np.array([np.log(q0), width0, screen.direction_deg])
-        simplex = np.vstack([x0, x0 + np.diag([0.05, 0.25 * width0 + 0.1, 20.0])])
-        res = minimize(lambda x, k=k: rss_on_halves(inp, [halves[k]], build(x))[0], x0,
-                       method="Nelder-Mead",
-                       options={"maxfev": MAX_EVALUATIONS, "initial_simplex": simplex})
-        m = build(res.x)
+        m = fit_on_half(inp, model, halves[k], name, screen.variance_px2,
+                        screen.direction_deg, q0)
         r = rss_on_halves(inp, halves, m)
         models.append(m)
         rss.append(r)
@@ -233,7 +245,7 @@ def screen_splits(ev: EvalContext) -> list[list[np.ndarray]] | None:
     return None if any(h is None for h in splits) else splits  # type: ignore[return-value]
 
 
-def _claimable(name: str, m: ForwardModel) -> bool:
+def claimable(name: str, m: ForwardModel) -> bool:
     """Clearly away from its null and not at a bound of its fitted widths."""
     shape = SHAPES[name]
     width = float(m.blur[name][shape.width_key])
@@ -270,7 +282,7 @@ def pixel_anisotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     chosen_fit = min(passing, key=lambda f: f.best()[1])
     chosen, _ = chosen_fit.best()
     name = chosen_fit.name
-    if not _claimable(name, chosen) or not no_worse_than_baseline(inp, ev)(chosen):
+    if not claimable(name, chosen) or not no_worse_than_baseline(inp, ev)(chosen):
         return model
     alternatives = [Alternative(f.name, heldout_gain(halves, f.dchi2),
                                 {k: float(v) for k, v in f.best()[0].blur[f.name].items()})

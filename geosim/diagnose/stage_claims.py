@@ -62,7 +62,7 @@ def claim_effects(inp: Inputs, model: ForwardModel, sel: BlurSelection,
                  **({} if a.delta_bic is None else {"delta_bic": a.delta_bic})}
                 for a in st.alternatives]
         out.append((Claim(st.name, dict(st.fit.effects[st.name]), unc, st.delta_bic,
-                          st.heldout_gain, alts), cur))
+                          st.heldout_gain, alts, test=st.test), cur))
     cur = cur.without(q=model.q, blur=model.blur)
     if model.seam is not None:
         s = model.seam
