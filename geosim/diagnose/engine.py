@@ -306,12 +306,12 @@ def _one_pass(inp: Inputs, rng: np.random.Generator, q_lo: float, q_hi: float,
         withdrawn_noise = withdrawn_noise + withdrawn_again
     # under noise, a resampling by its aliasing in the pixels, where the spectrum cannot
     model = coherent_resampling(inp, model, sel, setup, ev, window.candidates)
+    # an anisotropic member named by the transfer, checked against the other in the pixels
+    model = pixel_member(inp, model, sel, setup, ev, window.candidates)
     # beside a resampling, an isotropic roll-off by its trace in the pixels; alone, not
     # where moved objects are located unless told (the second pass, on the ground with
     # them painted in, tests it; in the first it had preempted that pass: development
     # c304's atmosphere lost, c319's named a detector, c1104's fit no longer halved)
-    # an anisotropic member named by the transfer, checked against the other in the pixels
-    model = pixel_member(inp, model, sel, setup, ev, window.candidates)
     deferred = (defer_lone and any(r.kind == "scene_change" for r in regions)
                 and lone_possible(model, window.candidates))
     model = pixel_isotropic(inp, model, sel, setup, ev, window.candidates, lone=not deferred)
