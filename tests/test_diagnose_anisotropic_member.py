@@ -147,12 +147,17 @@ def test_report_says_the_member_was_named_in_the_pixels():
               "rmse_after": 1.0, "spectral_error_after": 0.1}
     smear = {"name": "motion_smear", "params": {"length_px": 3.0}, **common,
              "test": {"transfer_named": "off_nadir_anisotropy", "naming_dchi2": [150.2, 120.7],
-                      "min_dchi2": 9.0}}
+                      "min_dchi2": 25.0},
+             "indistinguishable_from": ["off_nadir_anisotropy", "atmospheric_blur"]}
     text = "\n".join(_effect_lines(smear))
     assert "Evidence: ΔBIC = 40" in text and "quantisation lattice" not in text
     assert "the transfer named off_nadir_anisotropy" in text and "150 and 121" in text
+    # the member the pixels told apart is no caution; another alternative still is
+    assert "cannot be told apart from atmospheric_blur." in text
+    caution = "\n".join(_effect_lines({**smear, "test": None}))
+    assert "cannot be told apart from off_nadir_anisotropy, atmospheric_blur." in caution
     jpeg = {"name": "compression", "params": {"quality": 80}, **common,
             "test": {"lattice_log_lik_gain": 20.0}}
     text = "\n".join(_effect_lines(jpeg))
     assert "quantisation lattice" in text and "Named in the pixels" not in text
-    assert "Named in the pixels" not in "\n".join(_effect_lines({**smear, "test": None}))
+    assert "Named in the pixels" not in caution

@@ -85,11 +85,15 @@ def _effect_lines(e: dict[str, Any]) -> list[str]:
                  + "; after adding it the RMSE is "
                  f"{e['rmse_after']:.2f} DN and the spectral error "
                  f"{e['spectral_error_after']:.3f}.")
-    if e.get("indistinguishable_from"):
+    t = e.get("test") or {}
+    renamed_from = t.get("transfer_named") if e["name"] != "compression" else None
+    # a member renamed in the pixels lists the transfer's as its alternative (flights vote
+    # together); the pixels told them apart, so that one is not a caution
+    alts = [a for a in e.get("indistinguishable_from") or [] if a != renamed_from]
+    if alts:
         lines.append(f"  - Caution: on these data it cannot be told apart from "
-                     f"{', '.join(e['indistinguishable_from'])}.")
-    if e["name"] != "compression" and (e.get("test") or {}).get("transfer_named"):
-        t = e["test"]
+                     f"{', '.join(alts)}.")
+    if renamed_from:
         lines.append(f"  - Named in the pixels: the transfer named "
                      f"{t['transfer_named']}; fitted in its place on each half of a "
                      f"checkerboard, this one lowered the other half's residual by "
