@@ -9,7 +9,12 @@ direction, and, where the weaker checkerboard drop reaches ``--fit-above``, both
 fits (``shape_fit``: held-out drops, parameters, Q, RSS over both colours). Nothing the
 diagnosis decides is changed. Round 42's numbers: ``docs/diagnosis.md``, round 42.
 
+``--beside-blurs`` (round 45): the screen instead where the model holds a blur (a
+resampling, detector or atmosphere) and no anisotropic member and no JPEG, rendered with
+those blurs; no fits. Round 45's numbers: ``docs/diagnosis.md``, round 45.
+
 Run: python benchmarks/probe_anisotropic_screen.py IDX[,IDX...] OUT.jsonl [--fit-above 10]
+[--beside-blurs]
 """
 
 from __future__ import annotations
@@ -28,18 +33,23 @@ from geosim.diagnose import stage_anisotropic_pixels as an  # noqa: E402
 from geosim.diagnose.grey_render import grey_expected  # noqa: E402
 
 
-def measure(inp: Any, model: Any, ev: Any, fit_above: float) -> dict[str, Any]:
-    """The screen (and, above ``fit_above``, the fits) on ``model`` as the stage sees it."""
+def measure(inp: Any, model: Any, ev: Any, fit_above: float,
+            beside_blurs: bool = False) -> dict[str, Any]:
+    """The screen (and, above ``fit_above``, the fits) on ``model`` as the stage sees it;
+    ``beside_blurs``: the screen alone, where the model holds blurs but no anisotropic
+    member (and no JPEG)."""
     out: dict[str, Any] = {"q_model": model.q, "blur": sorted(model.blur),
                            "jpeg": model.compression is not None}
     splits = an.screen_splits(ev)
-    if model.blur or model.compression is not None or splits is None:
+    in_domain = (bool(model.blur) and not set(model.blur) & set(an.SHAPES) if beside_blurs
+                 else not model.blur)
+    if not in_domain or model.compression is not None or splits is None:
         return out
     rendered = grey_expected(inp, model)
     screen = an.anisotropy_screen(inp.grey - rendered, rendered, splits)
     out["screen"] = {"dchi2": screen.dchi2, "variance_px2": screen.variance_px2,
                      "direction_deg": screen.direction_deg}
-    if min(screen.dchi2[:2]) >= fit_above:
+    if not beside_blurs and min(screen.dchi2[:2]) >= fit_above:
         t0 = time.time()
         base = an._q_scan(inp, model, splits[0])
         for name in an.SHAPES:
@@ -55,9 +65,12 @@ def main() -> None:
     ap.add_argument("indices")
     ap.add_argument("out")
     ap.add_argument("--fit-above", type=float, default=10.0)
+    ap.add_argument("--beside-blurs", action="store_true",
+                    help="the screen where the model holds blurs but no anisotropic member")
     args = ap.parse_args()
     probe_cases(args.indices, args.out,
-                lambda inp, model, sel, setup, ev, cands: measure(inp, model, ev, args.fit_above))
+                lambda inp, model, sel, setup, ev, cands: measure(inp, model, ev, args.fit_above,
+                                                                  args.beside_blurs))
 
 
 if __name__ == "__main__":
