@@ -95,7 +95,7 @@ def _effect_lines(e: dict[str, Any]) -> list[str]:
                      f"{', '.join(alts)}.")
     if renamed_from:
         lines.append(f"  - Named in the pixels: the transfer named "
-                     f"{t['transfer_named']}; fitted in its place on each half of a "
+                     f"{renamed_from}; fitted in its place on each half of a "
                      f"checkerboard, this one lowered the other half's residual by "
                      + " and ".join(f"{v:.0f}" for v in t["naming_dchi2"])
                      + f" (residual variances per pixel; at least {fmt(t['min_dchi2'])} "
