@@ -24,9 +24,11 @@ class _Stop(Exception):
     """Raised at the stage's place to end the diagnosis there."""
 
 
-def probe_cases(indices: str, out: str, measure: Callable[..., dict[str, Any]]) -> None:
-    """Run the cases ``indices`` ("i,j,...") up to the first pass's isotropic pixel stage,
-    appending ``{"i", "probe", "seconds"}`` per case to ``out`` (JSON lines);
+def probe_cases(indices: str, out: str, measure: Callable[..., dict[str, Any]],
+                stage: str = "pixel_isotropic") -> None:
+    """Run the cases ``indices`` ("i,j,...") up to the first pass's call of ``engine.<stage>``
+    (a pixel stage taking ``(inp, model, sel, setup, ev, candidates)``), appending
+    ``{"i", "probe", "seconds"}`` per case to ``out`` (JSON lines);
     ``measure(inp, model, sel, setup, ev, candidates)`` gives ``probe`` from what the
     stage would see."""
     captured: dict[str, Any] = {}
@@ -35,7 +37,7 @@ def probe_cases(indices: str, out: str, measure: Callable[..., dict[str, Any]]) 
         captured["result"] = measure(*args)
         raise _Stop
 
-    engine.pixel_isotropic = hook
+    setattr(engine, stage, hook)
     sources = gen.default_sources()
     with open(out, "a") as f:
         for i in (int(v) for v in indices.split(",")):

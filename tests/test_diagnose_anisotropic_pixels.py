@@ -123,3 +123,50 @@ def test_without_the_pixel_test_that_blur_goes_unclaimed(monkeypatch):
     claimed, _, _, _ = _run(LONE_OFF_NADIR, q=4.2, seed=41, sat_px=128)
     assert not {"off_nadir_anisotropy", "motion_smear", "detector_integration",
                 "atmospheric_blur"} & set(claimed), list(claimed)
+
+
+#: a 1.4 px smear beside a resampling at Q 4.0 on this ground (seed 41): the transfer
+#: names the resampling only (the next test); round 46
+SMEAR_BESIDE_RESAMPLING = {"resampling": {"native_pitch_px": 1.5},
+                           "motion_smear": {"length_px": 1.4, "direction_deg": 60.0}}
+
+
+@pytest.mark.slow
+def test_smear_beside_a_resampling_found_in_the_pixels():
+    """The screen rendered with the model's resampling and the fits holding it: the
+    smear's family and direction claimed beside the resampling, and the refined
+    simulation nearer the scene than the baseline."""
+    claimed, se_base, se_ref, _ = _run(SMEAR_BESIDE_RESAMPLING, q=4.0, seed=41, sat_px=128)
+    family = {"off_nadir_anisotropy", "motion_smear"}
+    assert "resampling" in claimed and len(family & set(claimed)) == 1, list(claimed)
+    assert set(claimed) <= family | {"resampling"}, list(claimed)
+    params = claimed[next(iter(family & set(claimed)))]["params"]
+    direction = params.get("azimuth_deg", params.get("direction_deg"))
+    assert abs((direction - 60.0 + 90.0) % 180.0 - 90.0) < 10.0, params
+    assert abs(claimed["resampling"]["params"]["native_pitch_px"] - 1.5) < 0.1
+    assert se_ref < se_base, (se_base, se_ref)
+
+
+@pytest.mark.slow
+def test_without_the_pixel_test_that_smear_goes_unclaimed(monkeypatch):
+    """The same scene with the stage switched off: the resampling alone is claimed."""
+    monkeypatch.setattr(an, "SCREEN_MIN_DCHI2", np.inf)
+    claimed, _, _, _ = _run(SMEAR_BESIDE_RESAMPLING, q=4.0, seed=41, sat_px=128)
+    assert set(claimed) == {"resampling"}, list(claimed)
+
+
+@pytest.mark.parametrize(("q", "blur"), [
+    (1.9, {"resampling": {"native_pitch_px": 1.5}}),
+    (4.0, {"motion_smear": {"length_px": 1.5, "direction_deg": 10.0}}),
+    (4.0, {"resampling": {"native_pitch_px": 1.5},
+           "off_nadir_anisotropy": {"sigma_px": 0.4, "azimuth_deg": 10.0}}),
+])
+def test_not_tested_beside_blurs_below_q_2_or_beside_an_anisotropic_member(q, blur):
+    """The stage's domain: beside other blurs only at Q ≥ 2 (below it a resampling's
+    aliasing misfit can take the traceless shape), never beside an anisotropic member. The
+    model comes back untouched before any input is read (the inputs are None here)."""
+    from geosim.diagnose.model import ForwardModel
+
+    model = ForwardModel(q=q, blur=blur, registration=None)  # type: ignore[arg-type]
+    assert an.pixel_anisotropic(None, model, None, None, None,  # type: ignore[arg-type]
+                                tuple(an.SHAPES)) is model

@@ -21,8 +21,10 @@ cross-validation folds, forward blur selection) →
 :mod:`~geosim.diagnose.stage_anisotropic_member` (the anisotropic member the transfer
 named, checked against the other in the pixels),
 :mod:`~geosim.diagnose.stage_isotropic_pixels` (beside a resampling, an isotropic blur by
-its trace in the pixels), :mod:`~geosim.diagnose.stage_jpeg_blur` (under JPEG, a
-resampling at high Q checked on the scene's quantisation intervals, then a blur by them) and
+its trace in the pixels), :mod:`~geosim.diagnose.stage_anisotropic_pixels` (an anisotropic
+blur by its trace in the pixels, alone or beside the model's other blurs),
+:mod:`~geosim.diagnose.stage_jpeg_blur` (under JPEG, a resampling at high Q checked on the
+scene's quantisation intervals, then a blur by them) and
 :mod:`~geosim.diagnose.stage_withdraw` (checks on the delivered spectrum; the refined
 simulation may not fit worse than the baseline) →
 :func:`~geosim.diagnose.stage_claims.claim_effects` →
@@ -315,7 +317,8 @@ def _one_pass(inp: Inputs, rng: np.random.Generator, q_lo: float, q_hi: float,
     deferred = (defer_lone and any(r.kind == "scene_change" for r in regions)
                 and lone_possible(model, window.candidates))
     model = pixel_isotropic(inp, model, sel, setup, ev, window.candidates, lone=not deferred)
-    # where the model holds no blur and no JPEG, a lone anisotropic blur by its pixels
+    # where the model holds no anisotropic member and no JPEG, such a blur by its pixels
+    # (alone or beside the model's other blurs)
     model = pixel_anisotropic(inp, model, sel, setup, ev, window.candidates)
     # under JPEG at high Q, a resampling kept only where the quantisation intervals want it;
     # then a blur by those intervals, where the transfer cannot (not the one just withdrawn)

@@ -1,4 +1,5 @@
-"""A lone anisotropic blur, by its trace in the pixels (:func:`pixel_anisotropic`).
+"""An anisotropic blur, alone or beside the model's other blurs, by its trace in the pixels
+(:func:`pixel_anisotropic`).
 
 Where the model holds no blur and no JPEG, a small anisotropic blur (an off-nadir
 elongation, a motion smear) at high Q changes the measured transfer by less than a claim
@@ -23,6 +24,16 @@ half) and judged by its held-out drop of the other half's residual, which must r
 :data:`ANISO_PIXEL_MIN_DCHI2` both ways round against Q alone (scanned on the same half).
 The two shapes agree to second order, so the member claimed is the one of lower residual
 over both halves and the other is listed as an alternative where it passes the same test.
+
+Since round 46 the same test runs where the model holds other blurs (a resampling, a
+detector, an atmosphere; still no anisotropic member and no JPEG): beside them the
+transfer's limit is higher still (fresh c1441: a 1.95 px smear beside a resampling at Q
+3.86 stated untestable, limit 2.31 px, ideal Δχ² 1.2e4). Their isotropic second moments
+leave the traceless terms alone, so the screen is the same, rendered with them; the fits
+hold them at the transfer's values, and the test runs there only at Q ≥
+:data:`BESIDE_MIN_Q`. On the development half's 290 rows of that domain (round 46) the
+screen's smallest drop reached at most 4.5 at Q ≥ 2 where no anisotropic blur was in the
+scene, so the thresholds stay the lone test's (``docs/diagnosis.md``, round 46).
 """
 
 from __future__ import annotations
@@ -53,7 +64,7 @@ from geosim.diagnose.stage_withdraw import no_worse_than_baseline
 __all__ = ["pixel_anisotropic", "anisotropy_screen", "second_differences", "shape_fit",
            "fit_on_half", "claimable", "screen_splits",
            "Screen", "ShapeFit", "SHAPES", "SCREEN_MIN_DCHI2", "ANISO_PIXEL_MIN_DCHI2",
-           "Q_FACTORS", "MAX_EVALUATIONS"]
+           "Q_FACTORS", "MAX_EVALUATIONS", "BESIDE_MIN_Q"]
 
 #: held-out drop of the residual sum of squares the linear screen must show on each half
 #: of each split before the blur is fitted, in units of that half's residual variance per
@@ -100,6 +111,14 @@ SHAPES: dict[str, Shape] = {
 Q_FACTORS = tuple(float(f) for f in np.round(np.arange(0.80, 1.2001, 0.02), 2))
 #: renders of one shape's Nelder–Mead fit on one half
 MAX_EVALUATIONS = 60
+#: the model's lowest Q at which the test runs beside its other blurs: from Q 2 the optics
+#: cut off below the product grid's Nyquist frequency, so the rendered image's second
+#: differences are its derivatives; below it a resampling's aliasing misfit can take the
+#: traceless shape (development c906: beside a resampling at Q 1.15, the screen's smallest
+#: drop 22 and a smear's fits 107 / 112 with no anisotropic blur in the scene). Round 46,
+#: 290 development rows of the domain: the 161 at Q ≥ 2 without an anisotropic blur reach
+#: at most 4.5, the three blurs found there 41–1136; below Q 2 no anisotropic blur passed
+BESIDE_MIN_Q = 2.0
 
 
 @dataclass(frozen=True)
@@ -223,13 +242,13 @@ def shape_fit(inp: Inputs, model: ForwardModel, halves: list[np.ndarray], name: 
               screen: Screen, base: list[list[float]]) -> ShapeFit:
     """``name`` (a key of :data:`SHAPES`) fitted alone on each half (:func:`fit_on_half`,
     started from the screen's second moment and direction and from the Q of ``base`` best
-    on that half), and its held-out drop against the best of ``base`` (Q alone,
-    :func:`_q_scan`) chosen on the same half."""
+    on that half; the model's other blurs held as they are), and its held-out drop against
+    the best of ``base`` (Q alone, :func:`_q_scan`) chosen on the same half."""
     models, rss, dchi2 = [], [], []
     for k in (0, 1):
         q0 = Q_FACTORS[int(np.argmin([r[k] for r in base]))] * model.q
         m = fit_on_half(inp, model, halves[k], name, screen.variance_px2,
-                        screen.direction_deg, q0)
+                        screen.direction_deg, q0, held=model.blur)
         r = rss_on_halves(inp, halves, m)
         models.append(m)
         rss.append(r)
@@ -257,14 +276,19 @@ def claimable(name: str, m: ForwardModel) -> bool:
 def pixel_anisotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
                       setup: SpectralSetup, ev: EvalContext,
                       candidates: tuple[str, ...]) -> ForwardModel:
-    """A lone anisotropic blur claimed by its trace in the pixels.
+    """An anisotropic blur claimed by its trace in the pixels, alone or beside the model's
+    other blurs.
 
-    Tested only where the model holds no blur and no JPEG (whose quantisation is not
-    independent of the image). The claim's step records ``heldout_gain`` as the weaker
-    half's held-out drop of the residual sum of squares (fraction); its fit is the
-    transfer fit with the chosen blur held at the chosen Q."""
+    Tested only where the model holds no anisotropic member and no JPEG (whose quantisation
+    is not independent of the image); the model's other blurs (a resampling, a detector,
+    an atmosphere) are rendered in the screen and held as they are in the fits, and tested
+    beside them only at Q ≥ :data:`BESIDE_MIN_Q`. The
+    claim's step records ``heldout_gain`` as the weaker half's held-out drop of the
+    residual sum of squares (fraction); its fit is the transfer fit with the chosen blur
+    and the others held at the chosen Q."""
     members = [n for n in SHAPES if n in candidates]
-    if not members or model.blur or model.compression is not None:
+    if (not members or set(model.blur) & set(SHAPES) or model.compression is not None
+            or (model.blur and model.q < BESIDE_MIN_Q)):
         return model
     splits = screen_splits(ev)
     if splits is None:
