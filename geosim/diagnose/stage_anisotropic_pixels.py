@@ -117,7 +117,7 @@ MAX_EVALUATIONS = 60
 #: traceless shape (development c906: beside a resampling at Q 1.15, the screen's smallest
 #: drop 22 and a smear's fits 107 / 112 with no anisotropic blur in the scene). Round 46,
 #: 290 development rows of the domain: the 161 at Q ≥ 2 without an anisotropic blur reach
-#: at most 4.5, the three blurs found there 41–1136; below Q 2 no anisotropic blur passed
+#: at most 4.5, the three blurs the screen flagged there 41–1136; below Q 2 none passed
 BESIDE_MIN_Q = 2.0
 
 
@@ -282,10 +282,10 @@ def pixel_anisotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     Tested only where the model holds no anisotropic member and no JPEG (whose quantisation
     is not independent of the image); the model's other blurs (a resampling, a detector,
     an atmosphere) are rendered in the screen and held as they are in the fits, and tested
-    beside them only at Q ≥ :data:`BESIDE_MIN_Q`. The
-    claim's step records ``heldout_gain`` as the weaker half's held-out drop of the
-    residual sum of squares (fraction); its fit is the transfer fit with the chosen blur
-    and the others held at the chosen Q."""
+    beside them only at Q ≥ :data:`BESIDE_MIN_Q`. The claim's step records
+    ``heldout_gain`` as the weaker half's held-out drop of the residual sum of squares
+    (fraction); its fit is the transfer fit with the chosen blur and the others held at the
+    chosen Q."""
     members = [n for n in SHAPES if n in candidates]
     if (not members or set(model.blur) & set(SHAPES) or model.compression is not None
             or (model.blur and model.q < BESIDE_MIN_Q)):
