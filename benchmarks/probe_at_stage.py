@@ -53,10 +53,12 @@ def probe_cases(indices: str, out: str, measure: Callable[..., dict[str, Any]],
             print(i, json.dumps(rec["probe"])[:200], flush=True)
 
 
-def probe_main(description: str, measure: Callable[..., dict[str, Any]]) -> None:
-    """The command line of a probe: ``IDX[,IDX...] OUT.jsonl``, then :func:`probe_cases`."""
+def probe_main(description: str, measure: Callable[..., dict[str, Any]],
+               stage: str = "pixel_isotropic") -> None:
+    """The command line of a probe: ``IDX[,IDX...] OUT.jsonl``, then :func:`probe_cases`
+    stopping at ``engine.<stage>``."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("indices")
     ap.add_argument("out")
     args = ap.parse_args()
-    probe_cases(args.indices, args.out, measure)
+    probe_cases(args.indices, args.out, measure, stage)
