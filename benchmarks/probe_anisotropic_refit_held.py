@@ -45,8 +45,7 @@ def _fit(inp: Any, model: Any, half: np.ndarray, x0: np.ndarray, steps: np.ndarr
 def measure(inp: Any, model: Any, sel: Any, setup: Any, ev: Any, cands: Any) -> dict[str, Any]:
     out: dict[str, Any] = {"q_model": model.q, "blur": model.blur}
     splits = an.screen_splits(ev)
-    if (not model.blur or set(model.blur) & set(an.SHAPES) or model.compression is not None
-            or splits is None):
+    if not model.blur or not an.in_domain(model) or splits is None:
         return out
     rendered = grey_expected(inp, model)
     screen = an.anisotropy_screen(inp.grey - rendered, rendered, splits)

@@ -62,7 +62,7 @@ from geosim.diagnose.stage_resampling_coherent import (
 from geosim.diagnose.stage_withdraw import no_worse_than_baseline
 
 __all__ = ["pixel_anisotropic", "anisotropy_screen", "second_differences", "shape_fit",
-           "fit_on_half", "claimable", "screen_splits",
+           "fit_on_half", "claimable", "screen_splits", "in_domain",
            "Screen", "ShapeFit", "SHAPES", "SCREEN_MIN_DCHI2", "ANISO_PIXEL_MIN_DCHI2",
            "Q_FACTORS", "MAX_EVALUATIONS", "BESIDE_MIN_Q"]
 
@@ -273,6 +273,13 @@ def claimable(name: str, m: ForwardModel) -> bool:
             and not (np.isclose(width, lo) or np.isclose(width, hi)))
 
 
+def in_domain(model: ForwardModel) -> bool:
+    """Whether :func:`pixel_anisotropic` tests ``model``: no anisotropic member, no JPEG,
+    and other blurs only at Q ≥ :data:`BESIDE_MIN_Q`."""
+    return not (set(model.blur) & set(SHAPES) or model.compression is not None
+                or (model.blur and model.q < BESIDE_MIN_Q))
+
+
 def pixel_anisotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
                       setup: SpectralSetup, ev: EvalContext,
                       candidates: tuple[str, ...]) -> ForwardModel:
@@ -287,8 +294,7 @@ def pixel_anisotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     (fraction); its fit is the transfer fit with the chosen blur and the others held at the
     chosen Q."""
     members = [n for n in SHAPES if n in candidates]
-    if (not members or set(model.blur) & set(SHAPES) or model.compression is not None
-            or (model.blur and model.q < BESIDE_MIN_Q)):
+    if not members or not in_domain(model):
         return model
     splits = screen_splits(ev)
     if splits is None:
