@@ -170,3 +170,27 @@ def test_not_tested_beside_blurs_below_q_2_or_beside_an_anisotropic_member(q, bl
     model = ForwardModel(q=q, blur=blur, registration=None)  # type: ignore[arg-type]
     assert an.pixel_anisotropic(None, model, None, None, None,  # type: ignore[arg-type]
                                 tuple(an.SHAPES)) is model
+
+
+def _shape_fit(name: str, width: float, rss: float) -> an.ShapeFit:
+    from types import SimpleNamespace
+    key = an.SHAPES[name].width_key
+    model = SimpleNamespace(blur={name: {key: width}})
+    return an.ShapeFit(name=name, models=[model, model],  # type: ignore[list-item]
+                       rss=[[rss / 2, rss / 2], [rss, rss]], dchi2=[150.0, 150.0])
+
+
+def test_the_member_claimed_is_the_first_claimable_and_no_worse_in_order_of_rss():
+    """Both members passed the held-out test: the lower RSS is claimed unless its width is
+    at a bound or its delivered simulation fits worse than the baseline, and then the
+    other is (development c136: a smear beside a misregistration whose off-nadir fit had
+    the lower RSS and failed the spectrum)."""
+    off = _shape_fit("off_nadir_anisotropy", 0.56, 100.0)
+    smear = _shape_fit("motion_smear", 1.94, 101.0)
+    assert an.first_claimable([smear, off], lambda m: True) is off
+    worse = off.models[0]
+    assert an.first_claimable([smear, off], lambda m: m is not worse) is smear
+    assert an.first_claimable([smear, off], lambda m: False) is None
+    at_bound = _shape_fit("off_nadir_anisotropy", an.SHAPES["off_nadir_anisotropy"].bounds_px[1],
+                          90.0)
+    assert an.first_claimable([at_bound, smear], lambda m: True) is smear

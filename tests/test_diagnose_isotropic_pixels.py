@@ -178,3 +178,30 @@ def test_lone_test_left_out_where_the_engine_says_so(monkeypatch):
     args = (inp, model, None, None, ev, members)
     assert iso.pixel_isotropic(*args, lone=False) is model and not scanned
     assert iso.pixel_isotropic(*args, lone=True) is model and len(scanned) == 1
+
+
+def test_the_other_member_claimed_where_the_best_sits_at_an_end_of_its_scan():
+    """A value at an end of its scan stands in for a shape beyond it: the other member is
+    claimed where it passes the held-out test on its own, is inside its scan and fits no
+    worse (development c33: an atmosphere whose best detector sat at 2.0 px)."""
+    left = np.zeros((10, 200), bool)
+    left[:, :100] = True
+    halves = [left, ~left]                   # 1000 pixels each
+    base = [("b", [1000.0, 1000.0])]         # residual variance 1 DN² per pixel
+    members = ["detector_integration", "atmospheric_blur"]
+    pinned = ("detector_integration", 2.0, "d20", [700.0, 700.0])
+    scan = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
+                         scanned=[pinned, ("atmospheric_blur", 0.4, "a04", [750.0, 760.0])])
+    name, value, model, dchi2 = iso.first_claimable(scan, members, lambda m: True)
+    assert (name, value, model) == ("atmospheric_blur", 0.4, "a04")
+    assert dchi2 == pytest.approx([240.0, 250.0])     # its own held-out drops
+    # the other member weaker than the threshold on one half: nothing claimed
+    weak = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
+                         scanned=[pinned, ("atmospheric_blur", 0.4, "a04", [950.0, 760.0])])
+    assert iso.first_claimable(weak, members, lambda m: True) is None
+    # an interior best fitting worse than the baseline gives way to the other member
+    inner = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
+                          scanned=[("detector_integration", 1.3, "d13", [700.0, 700.0]),
+                                   ("atmospheric_blur", 0.4, "a04", [750.0, 760.0])])
+    assert iso.first_claimable(inner, members, lambda m: m != "d13")[2] == "a04"
+    assert iso.first_claimable(inner, members, lambda m: True)[2] == "d13"

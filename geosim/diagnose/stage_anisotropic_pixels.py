@@ -38,6 +38,7 @@ scene, so the thresholds stay the lone test's (``docs/diagnosis.md``, round 46).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,7 +63,7 @@ from geosim.diagnose.stage_resampling_coherent import (
 from geosim.diagnose.stage_withdraw import no_worse_than_baseline
 
 __all__ = ["pixel_anisotropic", "anisotropy_screen", "second_differences", "shape_fit",
-           "fit_on_half", "claimable", "screen_splits", "in_domain",
+           "fit_on_half", "claimable", "first_claimable", "screen_splits", "in_domain",
            "Screen", "ShapeFit", "SHAPES", "SCREEN_MIN_DCHI2", "ANISO_PIXEL_MIN_DCHI2",
            "Q_FACTORS", "MAX_EVALUATIONS", "BESIDE_MIN_Q"]
 
@@ -273,6 +274,20 @@ def claimable(name: str, m: ForwardModel) -> bool:
             and not (np.isclose(width, lo) or np.isclose(width, hi)))
 
 
+def first_claimable(passing: list[ShapeFit], ok: Callable[[ForwardModel], bool]
+                    ) -> ShapeFit | None:
+    """Of the fits that passed the held-out test, in order of their RSS over both halves,
+    the first whose best model is :func:`claimable` and accepted by ``ok`` (the engine's:
+    its delivered simulation fits no worse than the baseline); None when none is.
+
+    Both members passed, so the pixels did not tell them apart; a member whose delivered
+    simulation fits worse is no refinement, and the other may be (development c136: a
+    smear beside a misregistration, whose off-nadir fit had the lower RSS and failed the
+    spectrum)."""
+    return next((f for f in sorted(passing, key=lambda f: f.best()[1])
+                 if claimable(f.name, f.best()[0]) and ok(f.best()[0])), None)
+
+
 def in_domain(model: ForwardModel) -> bool:
     """Whether :func:`pixel_anisotropic` tests ``model``: no anisotropic member, no JPEG,
     and other blurs only at Q ≥ :data:`BESIDE_MIN_Q`."""
@@ -309,11 +324,11 @@ def pixel_anisotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     passing = [f for f in fits if min(f.dchi2) >= ANISO_PIXEL_MIN_DCHI2]
     if not passing:
         return model
-    chosen_fit = min(passing, key=lambda f: f.best()[1])
+    chosen_fit = first_claimable(passing, no_worse_than_baseline(inp, ev))
+    if chosen_fit is None:
+        return model
     chosen, _ = chosen_fit.best()
     name = chosen_fit.name
-    if not claimable(name, chosen) or not no_worse_than_baseline(inp, ev)(chosen):
-        return model
     alternatives = [Alternative(f.name, heldout_gain(halves, f.dchi2),
                                 {k: float(v) for k, v in f.best()[0].blur[f.name].items()})
                     for f in passing if f is not chosen_fit]

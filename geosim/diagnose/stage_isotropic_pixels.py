@@ -36,6 +36,7 @@ follows tests those (:func:`_lone_domain`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,7 +71,7 @@ from geosim.diagnose.stage_resampling_coherent import (
 from geosim.diagnose.stage_withdraw import Q_FLOOR_REL, no_worse_than_baseline
 
 __all__ = ["pixel_isotropic", "lone_possible", "IsotropicScan", "isotropic_scan",
-           "member_alternatives", "ISO_PIXEL_MIN_DCHI2", "REFINE_ON_SPECTRUM",
+           "member_alternatives", "first_claimable", "ISO_PIXEL_MIN_DCHI2", "REFINE_ON_SPECTRUM",
            "MEMBER_SCAN", "Q_FACTORS", "BASE_Q_FACTORS", "MIN_Q"]
 
 #: held-out drop of the residual sum of squares the isotropic blur must bring, in units of
@@ -255,6 +256,35 @@ def lone_possible(model: ForwardModel, candidates: tuple[str, ...]) -> bool:
             and model.compression is None)
 
 
+def first_claimable(scan: IsotropicScan, members: list[str],
+                    ok: Callable[[ForwardModel], bool]
+                    ) -> tuple[str, float, ForwardModel, list[float]] | None:
+    """(member, value, model, held-out drops) claimed from a scan that passed: the members
+    in order of their best residual over both halves, the first whose best value is inside
+    its scan (:func:`_pinned`), clearly away from its null (:func:`_sized`) and accepted by
+    ``ok`` (the engine's: its delivered simulation fits no worse than the baseline); a
+    member after the first must pass the held-out test on its own. None when no member
+    qualifies.
+
+    A value at an end of its scan stands in for a shape beyond it, so there that member's
+    shape is not the scene's; the other member, passing on its own, may be (development
+    c33: an atmosphere whose best detector sat at 2.0 px, the atmosphere at 0.38 cycles/px
+    passing 801 / 815). A member whose delivered simulation fits worse is not claimed:
+    :func:`~geosim.diagnose.stage_withdraw.never_worse` would withdraw it and refit Q on
+    the transfer, losing the Q the resampling's spectrum had put right (development c196:
+    spectral error 0.027 → 0.103)."""
+    present = [n for n in members if any(s[0] == n for s in scan.scanned)]
+    order = sorted(present, key=lambda n: min(sum(s[3]) for s in scan.scanned if s[0] == n))
+    for k, name in enumerate(order):
+        dchi2 = scan.heldout_dchi2() if k == 0 else scan.heldout_dchi2(name)
+        if min(dchi2) < ISO_PIXEL_MIN_DCHI2:
+            continue
+        _, value, chosen = scan.best(name)
+        if not _pinned(name, value) and _sized(name, value) and ok(chosen):
+            return name, value, chosen, dchi2
+    return None
+
+
 def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
                     setup: SpectralSetup, ev: EvalContext,
                     candidates: tuple[str, ...], lone: bool = True) -> ForwardModel:
@@ -278,17 +308,12 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     scan = isotropic_scan(inp, model, setup, ev, members)
     if scan is None:
         return model
-    dchi2 = scan.heldout_dchi2()
-    if min(dchi2) < ISO_PIXEL_MIN_DCHI2:
+    if min(scan.heldout_dchi2()) < ISO_PIXEL_MIN_DCHI2:
         return model
-    name, value, chosen = scan.best()
-    if _pinned(name, value) or not _sized(name, value):
+    picked = first_claimable(scan, members, no_worse_than_baseline(inp, ev))
+    if picked is None:
         return model
-    if not no_worse_than_baseline(inp, ev)(chosen):
-        # :func:`~geosim.diagnose.stage_withdraw.never_worse` would withdraw it and refit
-        # Q on the transfer, losing the Q the resampling's spectrum had put right
-        # (development c196: spectral error 0.027 → 0.103)
-        return model
+    name, value, chosen, dchi2 = picked
     if REFINE_ON_SPECTRUM and not alone:
         # after the claim is decided: refined before it, development c692's false 1.0 px
         # detector (beside a resampling alone at Q 1.00, refined to Q 0.74) passed it
