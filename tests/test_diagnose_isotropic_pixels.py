@@ -116,6 +116,11 @@ def test_alternative_members_pass_the_same_held_out_test():
     only_one = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
                              scanned=[claimed])
     assert iso.member_alternatives(only_one, "atmospheric_blur", members) == []
+    pinned = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
+                           scanned=[("detector_integration", 2.0, "d20", [800.0, 850.0]),
+                                    claimed])
+    # passing, but at the end of its scan: not an alternative
+    assert iso.member_alternatives(pinned, "atmospheric_blur", members) == []
 
 
 LONE_DETECTOR = {"detector_integration": {"pitch_px": 1.4}}

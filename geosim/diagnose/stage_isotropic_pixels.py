@@ -204,16 +204,18 @@ REFINE_ON_SPECTRUM = True
 def member_alternatives(scan: IsotropicScan, claimed: str, members: list[str]
                         ) -> list[Alternative]:
     """The members other than ``claimed`` that pass the same held-out test
-    (:data:`ISO_PIXEL_MIN_DCHI2` on both halves), each with its weaker half's gain and its
-    best value; a member with no scanned configuration (every Q below :data:`MIN_Q`) is
-    not one (development c196)."""
+    (:data:`ISO_PIXEL_MIN_DCHI2` on both halves) with a best value inside their scan, each
+    with its weaker half's gain and that value; a member with no scanned configuration
+    (every Q below :data:`MIN_Q`) is not one (development c196), nor one whose best value
+    sits at an end of its scan (it stands in for a shape beyond it: development c33's
+    2.0 px detector beside the atmosphere claimed)."""
     out = []
     for other in members:
         if other == claimed or not any(n == other for n, _, _, _ in scan.scanned):
             continue
         d = scan.heldout_dchi2(other)
-        if min(d) >= ISO_PIXEL_MIN_DCHI2:
-            _, v, _ = scan.best(other)
+        _, v, _ = scan.best(other)
+        if min(d) >= ISO_PIXEL_MIN_DCHI2 and not _pinned(other, v):
             out.append(Alternative(other, heldout_gain(scan.halves, d),
                                    {MEMBER_SCAN[other][0]: v}))
     return out
