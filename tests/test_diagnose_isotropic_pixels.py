@@ -91,15 +91,20 @@ def test_resampling_refined_on_the_spectrum_with_the_new_blur_held(monkeypatch):
     assert abs(out[True][2] - 1.6) <= 0.05, out
 
 
+def _thousand_pixel_halves() -> tuple[list[np.ndarray], list, list[str]]:
+    """Halves of 1000 pixels each, a base of residual variance 1 DN² per pixel on each,
+    and both members."""
+    left = np.zeros((10, 200), bool)
+    left[:, :100] = True
+    return ([left, ~left], [("b", [1000.0, 1000.0])],
+            ["detector_integration", "atmospheric_blur"])
+
+
 def test_alternative_members_pass_the_same_held_out_test():
     """The other member is an alternative only where it passes the held-out test on both
     halves; a member with no scanned configuration (every Q below MIN_Q) is skipped, not
     an error (development c196 had raised min() of an empty sequence)."""
-    left = np.zeros((10, 200), bool)
-    left[:, :100] = True
-    halves = [left, ~left]                   # 1000 pixels each
-    base = [("b", [1000.0, 1000.0])]         # residual variance 1 DN² per pixel
-    members = ["detector_integration", "atmospheric_blur"]
+    halves, base, members = _thousand_pixel_halves()
     claimed = ("atmospheric_blur", 0.4, "a04", [0.0, 0.0])
     weak = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
                          scanned=[("detector_integration", 1.2, "d12", [950.0, 950.0]),
@@ -189,11 +194,7 @@ def test_the_other_member_claimed_where_the_best_sits_at_an_end_of_its_scan():
     """A value at an end of its scan stands in for a shape beyond it: the other member is
     claimed where it passes the held-out test on its own, is inside its scan and fits no
     worse (development c33: an atmosphere whose best detector sat at 2.0 px)."""
-    left = np.zeros((10, 200), bool)
-    left[:, :100] = True
-    halves = [left, ~left]                   # 1000 pixels each
-    base = [("b", [1000.0, 1000.0])]         # residual variance 1 DN² per pixel
-    members = ["detector_integration", "atmospheric_blur"]
+    halves, base, members = _thousand_pixel_halves()
     pinned = ("detector_integration", 2.0, "d20", [700.0, 700.0])
     scan = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
                          scanned=[pinned, ("atmospheric_blur", 0.4, "a04", [750.0, 760.0])])
