@@ -23,7 +23,8 @@ where all six held-out Δχ² reach :data:`SCREEN_MIN_DCHI2` is the blur fitted
 half) and judged by its held-out drop of the other half's residual, which must reach
 :data:`ANISO_PIXEL_MIN_DCHI2` both ways round against Q alone (scanned on the same half).
 The two shapes agree to second order, so the member claimed is the one of lower residual
-over both halves and the other is listed as an alternative where it passes the same test.
+over both halves that can be claimed (:func:`first_claimable`) and the other is listed as
+an alternative where it passes the same test.
 
 Since round 46 the same test runs where the model holds other blurs (a resampling, a
 detector, an atmosphere; still no anisotropic member and no JPEG): beside them the

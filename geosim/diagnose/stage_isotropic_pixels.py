@@ -18,9 +18,11 @@ parameter are chosen on one half of the evaluation pixels (left / right of the m
 column) and must lower the other half's residual by at least
 :data:`ISO_PIXEL_MIN_DCHI2` of that half's residual variance per pixel, against the model
 without it (its Q scanned on the same half), both ways round. The member claimed is the
-one of lowest residual over both halves; the other is listed as an alternative where it
-passes the same test. The model with it must fit no worse than the baseline (as
-:func:`~geosim.diagnose.stage_withdraw.never_worse` asks of the refined simulation). Once
+one of lowest residual over both halves that can be claimed (inside its scan, clearly
+present, and the model with it fitting no worse than the baseline, as
+:func:`~geosim.diagnose.stage_withdraw.never_worse` asks of the refined simulation; a
+member after the first passing the test on its own: :func:`first_claimable`); the other
+is listed as an alternative where it passes the same test. Once
 the claim is decided, the resampling's pitch, Q and native phase are refined again on the
 power spectrum with the chosen blur held (:data:`REFINE_ON_SPECTRUM`: the pixels chose Q
 on a coarse scan and the phase on a grid).
