@@ -4,9 +4,7 @@ At the call of ``engine.censored_resampling_check`` (first pass), where the mode
 JPEG, it records the model's Q and blurs and, with the model's blurs left out, the
 censored test's own fits (``stage_jpeg_blur``: Q and each member on one half of the
 blocks, scored on the other): each member's held-out gains (nats) over the model without
-a blur, and its fitted parameters. Where the model holds a resampling, also the same
-member fits on top of it (the resampling held at the transfer's pitch and phase), which is
-what a blur beside it would have to pass. Nothing the diagnosis decides is changed.
+a blur, and its fitted parameters. Nothing the diagnosis decides is changed.
 
 Run: python benchmarks/probe_jpeg_blur.py IDX[,IDX...] OUT.jsonl
 """

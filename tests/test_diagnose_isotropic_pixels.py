@@ -194,20 +194,20 @@ def test_the_other_member_claimed_where_the_best_sits_at_an_end_of_its_scan():
     """A value at an end of its scan stands in for a shape beyond it: the other member is
     claimed where it passes the held-out test on its own, is inside its scan and fits no
     worse (development c33: an atmosphere whose best detector sat at 2.0 px)."""
-    halves, base, members = _thousand_pixel_halves()
+    halves, base, _ = _thousand_pixel_halves()
     pinned = ("detector_integration", 2.0, "d20", [700.0, 700.0])
     scan = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
                          scanned=[pinned, ("atmospheric_blur", 0.4, "a04", [750.0, 760.0])])
-    name, value, model, dchi2 = iso.first_claimable(scan, members, lambda m: True)
+    name, value, model, dchi2 = iso.first_claimable(scan, lambda m: True)
     assert (name, value, model) == ("atmospheric_blur", 0.4, "a04")
     assert dchi2 == pytest.approx([240.0, 250.0])     # its own held-out drops
     # the other member weaker than the threshold on one half: nothing claimed
     weak = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
                          scanned=[pinned, ("atmospheric_blur", 0.4, "a04", [950.0, 760.0])])
-    assert iso.first_claimable(weak, members, lambda m: True) is None
+    assert iso.first_claimable(weak, lambda m: True) is None
     # an interior best fitting worse than the baseline gives way to the other member
     inner = IsotropicScan(halves=halves, base=base,  # type: ignore[arg-type]
                           scanned=[("detector_integration", 1.3, "d13", [700.0, 700.0]),
                                    ("atmospheric_blur", 0.4, "a04", [750.0, 760.0])])
-    assert iso.first_claimable(inner, members, lambda m: m != "d13")[2] == "a04"
-    assert iso.first_claimable(inner, members, lambda m: True)[2] == "d13"
+    assert iso.first_claimable(inner, lambda m: m != "d13")[2] == "a04"
+    assert iso.first_claimable(inner, lambda m: True)[2] == "d13"

@@ -134,6 +134,13 @@ class IsotropicScan:
         alt = [r for n, _, _, r in self.scanned if member is None or n == member]
         return heldout_drop(self.halves, [r for _, r in self.base], alt)
 
+    def members(self) -> list[str]:
+        """The members scanned, in order of their lowest RSS over both halves."""
+        lowest: dict[str, float] = {}
+        for n, _, _, r in self.scanned:
+            lowest[n] = min(lowest.get(n, np.inf), sum(r))
+        return sorted(lowest, key=lowest.__getitem__)
+
     def best(self, member: str | None = None) -> tuple[str, float, ForwardModel]:
         """(member, value, model) of lowest RSS over both halves."""
         n, v, m, _ = min((s for s in self.scanned if member is None or s[0] == member),
@@ -260,15 +267,14 @@ def lone_possible(model: ForwardModel, candidates: tuple[str, ...]) -> bool:
             and model.compression is None)
 
 
-def first_claimable(scan: IsotropicScan, members: list[str],
-                    ok: Callable[[ForwardModel], bool]
+def first_claimable(scan: IsotropicScan, ok: Callable[[ForwardModel], bool]
                     ) -> tuple[str, float, ForwardModel, list[float]] | None:
     """(member, value, model, held-out drops) claimed from a scan that passed: the members
-    in order of their best residual over both halves, the first whose best value is inside
-    its scan (:func:`_pinned`), clearly away from its null (:func:`_sized`) and accepted by
-    ``ok`` (the engine's: its delivered simulation fits no worse than the baseline); a
-    member after the first must pass the held-out test on its own. None when no member
-    qualifies.
+    scanned, in order of their best residual over both halves (:meth:`IsotropicScan.members`),
+    the first whose best value is inside its scan (:func:`_pinned`), clearly away from its
+    null (:func:`_sized`) and accepted by ``ok`` (the engine's: its delivered simulation fits
+    no worse than the baseline); a member after the first must pass the held-out test on its
+    own. None when no member qualifies.
 
     A value at an end of its scan stands in for a shape beyond it, so there that member's
     shape is not the scene's; the other member, passing on its own, may be (development
@@ -277,9 +283,7 @@ def first_claimable(scan: IsotropicScan, members: list[str],
     :func:`~geosim.diagnose.stage_withdraw.never_worse` would withdraw it and refit Q on
     the transfer, losing the Q the resampling's spectrum had put right (development c196:
     spectral error 0.027 → 0.103)."""
-    present = [n for n in members if any(s[0] == n for s in scan.scanned)]
-    order = sorted(present, key=lambda n: min(sum(s[3]) for s in scan.scanned if s[0] == n))
-    for k, name in enumerate(order):
+    for k, name in enumerate(scan.members()):
         dchi2 = scan.heldout_dchi2() if k == 0 else scan.heldout_dchi2(name)
         if min(dchi2) < ISO_PIXEL_MIN_DCHI2:
             continue
@@ -314,7 +318,7 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         return model
     if min(scan.heldout_dchi2()) < ISO_PIXEL_MIN_DCHI2:
         return model
-    picked = first_claimable(scan, members, no_worse_than_baseline(inp, ev))
+    picked = first_claimable(scan, no_worse_than_baseline(inp, ev))
     if picked is None:
         return model
     name, value, chosen, dchi2 = picked
