@@ -89,7 +89,7 @@ def main() -> None:
     if set(args.indices) - set(di.DEVELOPMENT):
         sys.exit(f"--indices: development cases only (0-{max(di.DEVELOPMENT)}; not the "
                  "validation half)")
-    sources = gen.pick_sources(gen.list_sources(di.REAL, di.SAMPLES))
+    sources = gen.default_sources()
     prev: dict[str, Any] = {}
     if Path(args.baseline).is_file():
         prev = {r["case"]: r for r in json.loads(Path(args.baseline).read_text())["cases"]}

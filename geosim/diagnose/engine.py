@@ -68,6 +68,7 @@ from geosim.diagnose.stage_change import (
 from geosim.diagnose.stage_claims import claim_effects
 from geosim.diagnose.stage_inputs import Inputs, grey, make_inputs, require_blocks
 from geosim.diagnose.stage_isotropic_pixels import lone_possible, pixel_isotropic
+from geosim.diagnose.stage_isotropic_refine import refine_lone_isotropic
 from geosim.diagnose.stage_jpeg import blockiness, find_compression, jpeg_linearised
 from geosim.diagnose.stage_jpeg_blur import censored_blur, censored_resampling_check
 from geosim.diagnose.stage_jpeg_refit import (
@@ -328,6 +329,8 @@ def _one_pass(inp: Inputs, rng: np.random.Generator, q_lo: float, q_hi: float,
         if n not in {w["name"] for w in withdrawn_censored})), ev)
     model, withdrawn_floor = blur_at_q_floor(inp, model, sel, setup, window.q_lo)
     model, withdrawn_alias = jpeg_resampling_beyond_optics(inp, model, sel, setup)
+    # a lone detector or atmosphere: its value and Q refined on the delivered spectrum
+    model = refine_lone_isotropic(inp, model, sel, setup, ev)
     found = model
     model, withdrawn_iso = jpeg_delivered_isotropic(inp, model, sel, setup, ev)
     # the same judgement over every valid block (the changed regions included) on the
