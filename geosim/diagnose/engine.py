@@ -20,11 +20,13 @@ cross-validation folds, forward blur selection) →
 (under noise, a resampling by its aliasing in the pixels),
 :mod:`~geosim.diagnose.stage_anisotropic_member` (the anisotropic member the transfer
 named, checked against the other in the pixels),
-:mod:`~geosim.diagnose.stage_isotropic_pixels` (beside a resampling, an isotropic blur by
-its trace in the pixels), :mod:`~geosim.diagnose.stage_anisotropic_pixels` (an anisotropic
-blur by its trace in the pixels, alone or beside the model's other blurs),
+:mod:`~geosim.diagnose.stage_isotropic_pixels` (beside a resampling or alone, an
+isotropic blur by its trace in the pixels), :mod:`~geosim.diagnose.stage_anisotropic_pixels`
+(an anisotropic blur by its trace in the pixels, alone or beside the model's other blurs),
 :mod:`~geosim.diagnose.stage_jpeg_blur` (under JPEG, a resampling at high Q checked on the
-scene's quantisation intervals, then a blur by them) and
+scene's quantisation intervals, then a blur by them),
+:mod:`~geosim.diagnose.stage_isotropic_refine` (a lone detector's or atmosphere's value
+and Q refined on the delivered power spectrum) and
 :mod:`~geosim.diagnose.stage_withdraw` (checks on the delivered spectrum; the refined
 simulation may not fit worse than the baseline) →
 :func:`~geosim.diagnose.stage_claims.claim_effects` →
