@@ -304,8 +304,9 @@ def pixel_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     engine leaves it to the painted second pass where moved objects are located). A lone
     blur is claimed from the scan's pixels as they chose it (no resampling to refine on
     the spectrum here; the engine refines its value and Q later,
-    :func:`~geosim.diagnose.stage_isotropic_refine.refine_lone_isotropic`). The claim's step records ``heldout_gain`` as the weaker half's held-out
-    drop of the residual sum of squares (fraction); its fit is the transfer fit with the
+    :func:`~geosim.diagnose.stage_isotropic_refine.refine_lone_isotropic`). The claim's
+    step records ``heldout_gain`` as the weaker half's held-out drop of the residual sum
+    of squares (fraction); its fit is the transfer fit with the
     chosen blur held (Q refitted), its uncertainty the scan's step."""
     members = [n for n in MEMBER_SCAN if n in candidates]
     if (not members or model.compression is not None
