@@ -365,8 +365,8 @@ def luma(img: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- cases
-# Splits by seed. Round 47 (this one): the validation half is seeds 2504-2535, drawn only for round
-# 47's final report; every seed of 1000-2503 is development (1000-1063: round 1's two halves, seen
+# Splits by seed. Round 48 (this one): the validation half is seeds 2536-2567, drawn only for round
+# 48's final report; every seed of 1000-2535 is development (1000-1063: round 1's two halves, seen
 # while tuning; odd 1065-1127: round 2's validation half; even 1064-1126: round 3's validation half;
 # 1128-1159: round 4's; 1160-1191: round 5's; 1192-1223: round 6's; 1224-1255: round 7's; 1256-1287:
 # round 8's; 1288-1319: round 9's; 1320-1351: round 10's; 1352-1383: round 11's; 1384-1415: round
@@ -378,13 +378,14 @@ def luma(img: np.ndarray) -> np.ndarray:
 # 2056-2087: round 33's; 2088-2119: round 34's; 2120-2151: round 35's; 2152-2183: round 36's;
 # 2184-2215: round 37's; 2216-2247: round 38's; 2248-2279: round 39's; 2280-2311: round 40's;
 # 2312-2343: round 41's; 2344-2375: round 42's; 2376-2407: round 43's; 2408-2439: round 44's;
-# 2440-2471: round 45's; 2472-2503: round 46's, each seen in its round's final report).
-VALIDATION_FIRST_SEED = 2504
-VALIDATION_LAST_SEED = 2535
+# 2440-2471: round 45's; 2472-2503: round 46's; 2504-2535: round 47's, each seen in its round's
+# final report).
+VALIDATION_FIRST_SEED = 2536
+VALIDATION_LAST_SEED = 2567
 
 
 def is_validation_seed(seed: int) -> bool:
-    """Whether ``seed`` belongs to the (round 47) validation half."""
+    """Whether ``seed`` belongs to the (round 48) validation half."""
     return VALIDATION_FIRST_SEED <= seed <= VALIDATION_LAST_SEED
 
 
@@ -685,7 +686,7 @@ def case_inputs(i: int, sources: list[Source], *, sat_px: int = 128, margin_px: 
     """The inputs of case ``i`` (seed base_seed + i): source round robin; every
     ``control_every``-th a control (the paper's model only); else 1-3 effects.
     ``force``: exactly these effects (random parameters), for extra development cases of
-    one kind (seeds 6000-6999 for blur effects; the seeds 1000-2535 are drawn without it).
+    one kind (seeds 6000-6999 for blur effects; the seeds 1000-2567 are drawn without it).
 
     ``effects`` forces the effect set (parameters still drawn from RANGES, no effect count
     drawn) and ``q_range`` the range Q is drawn from: only for the development extension

@@ -4,9 +4,9 @@ The "real" satellite scenes come from ``benchmarks/diagnose_generator.py``, whic
 imports nothing from geosim (each effect written again from its physics, blur applied
 on the 0.05 m grid before sampling). Cases come from every real image in
 ``../shared/realdata`` and the sample site, phi = 10, Q from 0.8 to 4.5, 0-3 effects,
-every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-2503 (thresholds are
+every 5th case a control. Seeds 1000 + i. Development half: seeds 1000-2535 (thresholds are
 tuned on these only; each earlier round's validation half was seen in its final report, so
-it joined development). Validation half (round 47, fresh): the 32 seeds 2504-2535, run only
+it joined development). Validation half (round 48, fresh): the 32 seeds 2536-2567, run only
 for the final report. The diagnosis sees the
 UAV image and the scene, calibrates Q by Laplacian variance, and is scored by the
 benchmark's own measures (exact effect names; its own spectral error). Each row also
@@ -75,10 +75,10 @@ REAL = gen.REALDATA
 #: the halves' results (128 px scenes); other runs write elsewhere
 HALVES_FILE = ROOT / "benchmarks" / "results" / "diagnose_independent.json"
 SEEDS_NOTE = (f"1000 + i; development 1000-{gen.VALIDATION_FIRST_SEED - 1}, validation "
-              f"{gen.VALIDATION_FIRST_SEED}-{gen.VALIDATION_LAST_SEED} (round 47)")
-N_VALIDATION_LAST = 1535
-#: case indices (seed 1000 + i) of the two halves (round 47: development 0-1503,
-#: validation 1504-1535)
+              f"{gen.VALIDATION_FIRST_SEED}-{gen.VALIDATION_LAST_SEED} (round 48)")
+N_VALIDATION_LAST = 1567
+#: case indices (seed 1000 + i) of the two halves (round 48: development 0-1535,
+#: validation 1536-1567)
 DEVELOPMENT = [i for i in range(N_VALIDATION_LAST + 1) if not gen.is_validation_seed(1000 + i)]
 VALIDATION = [i for i in range(N_VALIDATION_LAST + 1) if gen.is_validation_seed(1000 + i)]
 N_CASES = len(DEVELOPMENT)
