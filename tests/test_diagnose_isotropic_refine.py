@@ -3,6 +3,8 @@ analytic scores (a bowl with a known minimum), its bounds and its "strictly lowe
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from geosim.diagnose.stage_isotropic_refine import refined_inside
@@ -12,7 +14,8 @@ HI = np.array([2.0, np.log(6.0)])
 STEP = np.array([0.1, 0.05])
 
 
-def _bowl(centre: tuple[float, float], scale: tuple[float, float] = (0.3, 0.2)):
+def _bowl(centre: tuple[float, float], scale: tuple[float, float] = (0.3, 0.2)
+          ) -> Callable[[np.ndarray], float]:
     """A smooth score with its minimum (0.01) at ``centre`` (pitch px, ln Q): an
     elongated, tilted valley, as pitch and Q trade against each other."""
     c = np.asarray(centre, float)
