@@ -22,9 +22,9 @@ the blur).
 
 Round 48, development (the 123 rows whose model's only blur was a claimed detector or
 atmosphere, no JPEG, rerun): against the independent generator's truth the claimed
-parameter's median relative error fell from 0.037 to 0.014 (121 rightly claimed; closer
-in 65, farther in 48) and Q's from 0.0105 to 0.0057; the benchmark's spectral error fell
-in 56 rows and rose in 18 (by more than 0.001); 7 more effect cases halved (c33, c198,
+parameter's median relative error fell from 0.038 to 0.015 (122 rightly claimed; closer
+in 65, farther in 49) and Q's from 0.0107 to 0.0058; the benchmark's spectral error fell
+in 57 rows and rose in 18 (by more than 0.001); 7 more effect cases halved (c33, c198,
 c304, c333, c418, c624, c981) and one no longer (c238: 0.031 → 0.034 against 0.062).
 Two scenes with moved objects changed claims (c1091 a false smear, c1338 a false shift),
 where the pass kept (first or painted second) flipped on whole-extent errors within
