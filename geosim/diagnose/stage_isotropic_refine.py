@@ -41,7 +41,7 @@ import numpy as np
 from geosim.diagnose.context import EvalContext
 from geosim.diagnose.model import ForwardModel
 from geosim.diagnose.resampling_refine import minimise_bounded
-from geosim.diagnose.select import BlurSelection, clearly_present
+from geosim.diagnose.select import BlurSelection, clearly_present, replace_step
 from geosim.diagnose.stage_blur import SpectralSetup
 from geosim.diagnose.stage_inputs import Inputs
 from geosim.diagnose.stage_isotropic_pixels import MEMBER_SCAN, MIN_Q
@@ -95,7 +95,9 @@ def refine_lone_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
         The forward model as claimed.
     sel
         The selection whose step claimed the blur: that step's fit takes the refined
-        value and Q (what the claim reports), in place.
+        value and Q (what the claim reports), in place
+        (:func:`~geosim.diagnose.select.replace_step`, which also carries the value into
+        later steps' fits and the final one).
     setup
         The spectral setup (its Q grid bounds the search).
     ev
@@ -122,11 +124,9 @@ def refine_lone_isotropic(inp: Inputs, model: ForwardModel, sel: BlurSelection,
     if x is None or not clearly_present(name, {key: float(x[0])}):
         return model
     refined = at(x)
-    for k, st in enumerate(sel.steps):
-        if st.name == name:
-            fit = replace(st.fit, q=refined.q, effects={**st.fit.effects,
-                                                        name: dict(refined.blur[name])})
-            sel.steps[k] = replace(st, fit=fit)
-            if k == len(sel.steps) - 1:
-                sel.final = fit
+    k = next((i for i, st in enumerate(sel.steps) if st.name == name), None)
+    if k is not None:
+        st = sel.steps[k]
+        replace_step(sel, k, replace(st, fit=replace(
+            st.fit, q=refined.q, effects={**st.fit.effects, name: dict(refined.blur[name])})))
     return refined
